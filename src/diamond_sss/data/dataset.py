@@ -1,0 +1,423 @@
+"""The OLAT dataset: a lattice of camera views x point lights, with the observed (view, light) images.
+
+Cameras and lights that repeat across JSON frames are deduplicated into lattice indices (lights within a
+tolerance), so capture regimes can select views and lights, and so that a test split's views and lights
+are comparable with training ones. Images load lazily into a bounded cache.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from diamond_sss.data.conventions import (
+    camera_centers,
+    intrinsics_from_fov,
+    intrinsics_matrix,
+    opengl_c2w_to_opencv_w2c,
+    scale_intrinsics,
+)
+from diamond_sss.data.errors import DataError, data_error
+from diamond_sss.data.images import composite_background, load_rgba, resize_area
+from diamond_sss.data.transforms import ImageRecord, parse_transforms, transforms_path
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: world-to-camera ``w2c [4,4]`` (OpenCV axes), ``K [3,3]`` in pixels, image size."""
+
+    w2c: Tensor
+    K: Tensor
+    width: int
+    height: int
+    frame: int
+
+    @property
+    def center(self) -> Tensor:
+        """World-space camera centre ``[3]``."""
+        return camera_centers(self.w2c)
+
+
+@dataclass(frozen=True)
+class Light:
+    """A point light: world position ``[3]`` and RGB intensity ``[3]``."""
+
+    position: Tensor
+    intensity: Tensor
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One captured image: lattice view and light indices, its file, and the JSON frame it came from."""
+
+    view: int
+    light: int
+    image_path: Path
+    mask_path: Path | None
+    frame: int
+
+
+@dataclass
+class ImageSample:
+    """A decoded observation: linear premultiplied RGB ``[H,W,3]`` and mask ``[H,W,1]``."""
+
+    index: int
+    view: int
+    light: int
+    rgb: Tensor
+    mask: Tensor
+
+
+@dataclass(frozen=True)
+class SceneBounds:
+    """Bounding sphere of the object (world units) and the near / far camera depths that enclose it."""
+
+    center: Tensor
+    radius: float
+    near: float
+    far: float
+
+
+@dataclass
+class _ImageCache:
+    capacity: int
+    entries: OrderedDict = field(default_factory=OrderedDict)
+    warned_empty: set = field(default_factory=set)
+
+    def get(self, key: int) -> tuple[Tensor, Tensor] | None:
+        if key in self.entries:
+            self.entries.move_to_end(key)
+            return self.entries[key]
+        return None
+
+    def put(self, key: int, value: tuple[Tensor, Tensor]) -> None:
+        if self.capacity <= 0:
+            return
+        self.entries[key] = value
+        self.entries.move_to_end(key)
+        while len(self.entries) > self.capacity:
+            self.entries.popitem(last=False)
+
+
+class OLATDataset:
+    """Multi-view OLAT capture read from ``<root>/transforms_<split>.json``.
+
+    Args:
+        root: data folder.
+        split: selects ``transforms_<split>.json`` (``train``, ``test`` or any other such file).
+        downscale: image size divided by this factor (area averaging; intrinsics scaled to match).
+        background: ``"black"`` (premultiplied, default) or ``"white"``.
+        cache_images: how many decoded images to keep in memory (least recently used are dropped).
+        light_tolerance: lights closer than this fraction of the light-rig radius are one lattice light.
+    """
+
+    def __init__(self, root: str | Path, split: str = "train", *, downscale: float = 1.0,
+                 background: str = "black", cache_images: int = 1024, light_tolerance: float = 1e-3) -> None:
+        if downscale < 1.0:
+            raise ValueError(f"downscale must be >= 1, got {downscale}")
+        if background not in ("black", "white"):
+            raise ValueError(f"background must be 'black' or 'white', got {background!r}")
+        self.root = Path(root).resolve()
+        self.split = split
+        self.downscale = float(downscale)
+        self.background = background
+        self.json_path = transforms_path(self.root, split)
+        records = parse_transforms(self.json_path)
+        self.cameras, view_of_record = _deduplicate_cameras(records, self.downscale)
+        self.lights, light_of_record = _deduplicate_lights(records, light_tolerance)
+        self.observations = _observations(self.json_path, records, view_of_record, light_of_record, self.cameras,
+                                          self.downscale)
+        self._geometry_maps = {view_of_record[i]: (r.depth_path, r.normal_path) for i, r in enumerate(records)}
+        self._cache = _ImageCache(cache_images)
+
+    # ------------------------------------------------------------------ lattice
+    @property
+    def num_views(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def num_lights(self) -> int:
+        return len(self.lights)
+
+    def __len__(self) -> int:
+        return len(self.observations)
+
+    @property
+    def width(self) -> int:
+        return self.cameras[0].width
+
+    @property
+    def height(self) -> int:
+        return self.cameras[0].height
+
+    @cached_property
+    def viewmats(self) -> Tensor:
+        """World-to-camera matrices of all lattice views, ``[V,4,4]`` OpenCV."""
+        return torch.stack([c.w2c for c in self.cameras])
+
+    @cached_property
+    def intrinsics(self) -> Tensor:
+        """Intrinsics of all lattice views, ``[V,3,3]``."""
+        return torch.stack([c.K for c in self.cameras])
+
+    @cached_property
+    def camera_centers(self) -> Tensor:
+        """Camera centres ``[V,3]``."""
+        return camera_centers(self.viewmats)
+
+    @cached_property
+    def light_positions(self) -> Tensor:
+        """Light positions ``[L,3]``."""
+        return torch.stack([light.position for light in self.lights])
+
+    @cached_property
+    def light_intensities(self) -> Tensor:
+        """Light RGB intensities ``[L,3]``."""
+        return torch.stack([light.intensity for light in self.lights])
+
+    @cached_property
+    def presence(self) -> Tensor:
+        """``[V,L]`` bool: which (view, light) images exist."""
+        grid = torch.zeros(self.num_views, self.num_lights, dtype=torch.bool)
+        for obs in self.observations:
+            grid[obs.view, obs.light] = True
+        return grid
+
+    def observation_index(self, view: int, light: int) -> int:
+        """Index of the observation of ``(view, light)``; ``KeyError`` when it was not captured."""
+        for index, obs in enumerate(self.observations):
+            if obs.view == view and obs.light == light:
+                return index
+        raise KeyError(f"no image of view {view} under light {light} in {self.json_path}")
+
+    @cached_property
+    def bounds(self) -> SceneBounds:
+        """Bounding sphere and near/far, computed once from the cameras (see :func:`scene_bounds`)."""
+        return scene_bounds(self.viewmats, self.intrinsics, self.width, self.height)
+
+    # ------------------------------------------------------------------ images
+    def load(self, index: int) -> ImageSample:
+        """Decode observation ``index`` (cached): linear RGB over the chosen background and its mask."""
+        if not 0 <= index < len(self.observations):
+            raise IndexError(f"observation {index} out of range (0..{len(self.observations) - 1})")
+        obs = self.observations[index]
+        cached = self._cache.get(index)
+        if cached is None:
+            rgb, mask = load_rgba(obs.image_path, obs.mask_path)
+            camera = self.cameras[obs.view]
+            rgb = resize_area(rgb, camera.height, camera.width)
+            mask = resize_area(mask, camera.height, camera.width)
+            if float(mask.max()) < 0.5 / 255.0 and index not in self._cache.warned_empty:
+                self._cache.warned_empty.add(index)
+                warnings.warn(f"{obs.image_path}: the mask is empty (frame {obs.frame} of {self.json_path})",
+                              stacklevel=2)
+            cached = (rgb, mask)
+            self._cache.put(index, cached)
+        rgb, mask = cached
+        return ImageSample(index=index, view=obs.view, light=obs.light,
+                           rgb=composite_background(rgb, mask, self.background), mask=mask)
+
+    def __getitem__(self, index: int) -> ImageSample:
+        return self.load(index)
+
+    def load_batch(self, indices: Sequence[int]) -> tuple[Tensor, Tensor]:
+        """Stacked RGB ``[B,H,W,3]`` and masks ``[B,H,W,1]`` of several observations."""
+        samples = [self.load(int(i)) for i in indices]
+        return torch.stack([s.rgb for s in samples]), torch.stack([s.mask for s in samples])
+
+    def has_geometry_maps(self, view: int) -> bool:
+        """Whether depth and normal maps are stored for ``view``."""
+        depth, normal = self._geometry_maps.get(view, (None, None))
+        return depth is not None and normal is not None
+
+    def load_geometry_maps(self, view: int) -> tuple[Tensor, Tensor]:
+        """Stored depth ``[H,W,1]`` (camera z, 0 = background) and world normals ``[H,W,3]`` of ``view``."""
+        depth_path, normal_path = self._geometry_maps.get(view, (None, None))
+        if depth_path is None or normal_path is None:
+            raise DataError(f"{self.json_path}: view {view} has no 'depth_path'/'normal_path' maps")
+        camera = self.cameras[view]
+        maps = []
+        for path, channels in ((depth_path, 1), (normal_path, 3)):
+            array = np.load(path, allow_pickle=False).astype(np.float32)
+            array = array.reshape(array.shape[0], array.shape[1], channels)
+            tensor = torch.from_numpy(array).permute(2, 0, 1)[None]
+            tensor = F.interpolate(tensor, size=(camera.height, camera.width), mode="nearest")
+            maps.append(tensor[0].permute(1, 2, 0).contiguous())
+        return maps[0], maps[1]
+
+    # ------------------------------------------------------------------ selection and batches
+    def subset(self, observation_indices: Sequence[int]) -> "OLATDataset":
+        """A dataset with the same lattice (cameras, lights, indices) restricted to some observations."""
+        clone = object.__new__(OLATDataset)
+        clone.__dict__.update({k: v for k, v in self.__dict__.items() if k not in _CACHED_PROPERTIES})
+        clone.observations = [self.observations[int(i)] for i in observation_indices]
+        clone._cache = _ImageCache(self._cache.capacity)
+        return clone
+
+    def batch_indices(self, step: int, batch_size: int, seed: int) -> list[int]:
+        """Observation indices of training step ``step``: seeded epochs of random permutations.
+
+        A pure function of ``(step, batch_size, seed)``, so a resumed run draws the same batches.
+        """
+        count = len(self.observations)
+        if count == 0:
+            raise DataError(f"{self.json_path}: no observations to draw batches from")
+        out = []
+        for k in range(batch_size):
+            flat = step * batch_size + k
+            epoch, position = divmod(flat, count)
+            generator = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+            out.append(int(torch.randperm(count, generator=generator)[position]))
+        return out
+
+    def iter_batches(self, batch_size: int, seed: int, start_step: int = 0) -> Iterator[list[int]]:
+        """Endless iterator of :meth:`batch_indices` from ``start_step`` on."""
+        step = start_step
+        while True:
+            yield self.batch_indices(step, batch_size, seed)
+            step += 1
+
+    def summary(self) -> dict:
+        """Counts and sizes for ``diamond-sss info``."""
+        bounds = self.bounds
+        used_views = sorted({o.view for o in self.observations})
+        used_lights = sorted({o.light for o in self.observations})
+        return {
+            "root": str(self.root),
+            "split": self.split,
+            "views": len(used_views),
+            "lights": len(used_lights),
+            "lattice_views": self.num_views,
+            "lattice_lights": self.num_lights,
+            "images": len(self.observations),
+            "width": self.width,
+            "height": self.height,
+            "downscale": self.downscale,
+            "bounds": {"center": [round(float(x), 6) for x in bounds.center], "radius": round(bounds.radius, 6),
+                       "near": round(bounds.near, 6), "far": round(bounds.far, 6)},
+            "geometry_maps": sum(self.has_geometry_maps(v) for v in range(self.num_views)),
+        }
+
+
+_CACHED_PROPERTIES = {"presence"}
+
+
+def scene_bounds(viewmats: Tensor, Ks: Tensor, width: int, height: int) -> SceneBounds:
+    """Bounding sphere of what every camera sees, from the cameras alone.
+
+    Centre: the least-squares point nearest to all optical axes, ``argmin_x sum_v ||(I - d_v d_v^T)(x - c_v)||^2``.
+    Radius: the largest sphere at that centre inside every camera's field of view,
+    ``min_v |x - c_v| sin(theta_v)`` with ``theta_v`` the smallest half-angle of view ``v`` (objects are framed
+    by the cameras, so this bounds them). ``near = max(1e-3, min_v d_v - r)``, ``far = max_v d_v + r``.
+    """
+    centers = camera_centers(viewmats.double())
+    forward = viewmats.double()[:, 2, :3]
+    projector = torch.eye(3, dtype=torch.float64) - forward[:, :, None] * forward[:, None, :]
+    system = projector.sum(0)
+    rhs = (projector @ centers[:, :, None]).sum(0)[:, 0]
+    if torch.linalg.eigvalsh(system).min() < 1e-3 * len(centers):
+        center = torch.zeros(3, dtype=torch.float64)
+    else:
+        center = torch.linalg.solve(system, rhs)
+    distances = (centers - center).norm(dim=-1)
+    fx, fy, cx, cy = Ks[:, 0, 0].double(), Ks[:, 1, 1].double(), Ks[:, 0, 2].double(), Ks[:, 1, 2].double()
+    half_u = torch.minimum(cx, width - cx) / fx
+    half_v = torch.minimum(cy, height - cy) / fy
+    half_angle = torch.atan(torch.minimum(half_u, half_v))
+    radius = float((distances * torch.sin(half_angle)).min())
+    near = max(1e-3, float(distances.min()) - radius)
+    far = float(distances.max()) + radius
+    return SceneBounds(center=center.float(), radius=radius, near=near, far=far)
+
+
+def _camera_matrix(record: ImageRecord, downscale: float) -> tuple[Tensor, Tensor, int, int]:
+    intr = record.intrinsics
+    width, height = record.width, record.height
+    if intr.fx is not None:
+        cx = intr.cx if intr.cx is not None else 0.5 * width
+        cy = intr.cy if intr.cy is not None else 0.5 * height
+        K = intrinsics_matrix(intr.fx, intr.fy, cx, cy)
+    else:
+        K = intrinsics_from_fov(intr.fov_x, width, height, intr.fov_y)
+    new_width = max(1, int(round(width / downscale)))
+    new_height = max(1, int(round(height / downscale)))
+    if new_width != width:
+        K = scale_intrinsics(K, new_width / width)
+    w2c = opengl_c2w_to_opencv_w2c(torch.from_numpy(record.c2w)).float()
+    return w2c, K, new_width, new_height
+
+
+def _deduplicate_cameras(records: list[ImageRecord], downscale: float) -> tuple[list[Camera], list[int]]:
+    cameras: list[Camera] = []
+    keys: dict[tuple, int] = {}
+    view_of_record = []
+    for record in records:
+        intr = record.intrinsics
+        key = (tuple(np.round(record.c2w, 6).ravel().tolist()), intr, record.width, record.height)
+        if key not in keys:
+            w2c, K, width, height = _camera_matrix(record, downscale)
+            keys[key] = len(cameras)
+            cameras.append(Camera(w2c=w2c, K=K, width=width, height=height, frame=record.frame))
+        view_of_record.append(keys[key])
+    return cameras, view_of_record
+
+
+def _deduplicate_lights(records: list[ImageRecord], tolerance: float) -> tuple[list[Light], list[int]]:
+    positions = np.stack([r.light_position for r in records])
+    scale = max(float(np.linalg.norm(positions, axis=-1).max()), 1e-6)
+    unique_pos: list[np.ndarray] = []
+    unique_rgb: list[np.ndarray] = []
+    light_of_record = []
+    for record in records:
+        match = -1
+        if unique_pos:
+            dist = np.linalg.norm(np.stack(unique_pos) - record.light_position, axis=-1)
+            for candidate in np.flatnonzero(dist <= tolerance * scale):
+                if np.allclose(unique_rgb[candidate], record.light_intensity, rtol=1e-3, atol=1e-6):
+                    match = int(candidate)
+                    break
+        if match < 0:
+            match = len(unique_pos)
+            unique_pos.append(record.light_position)
+            unique_rgb.append(record.light_intensity)
+        light_of_record.append(match)
+    lights = [Light(position=torch.tensor(p, dtype=torch.float32), intensity=torch.tensor(c, dtype=torch.float32))
+              for p, c in zip(unique_pos, unique_rgb)]
+    return lights, light_of_record
+
+
+def _observations(json_path: Path, records: list[ImageRecord], view_of_record: list[int],
+                  light_of_record: list[int], cameras: list[Camera], downscale: float) -> list[Observation]:
+    observations = []
+    seen: dict[tuple[int, int], Path] = {}
+    for record, view, light in zip(records, view_of_record, light_of_record):
+        camera = cameras[view]
+        expected = (int(round(record.width / downscale)), int(round(record.height / downscale)))
+        if record.file_size != (record.width, record.height) or expected != (camera.width, camera.height):
+            file_w, file_h = record.file_size
+            raise data_error(json_path, f"image {record.image_path} is {file_w}x{file_h} but view {view} is "
+                             f"{camera.width}x{camera.height} (before downscale {record.width}x{record.height})",
+                             frame=record.frame, key="w/h")
+        if (view, light) in seen:
+            warnings.warn(f"{json_path}: frame {record.frame}: {record.image_path} repeats view {view} under light "
+                          f"{light} (already {seen[(view, light)]}); keeping the first", stacklevel=3)
+            continue
+        seen[(view, light)] = record.image_path
+        observations.append(Observation(view=view, light=light, image_path=record.image_path,
+                                        mask_path=record.mask_path, frame=record.frame))
+    return observations
+
+
+def directions_from(points: Tensor, center: Tensor) -> Tensor:
+    """Unit directions from ``center [3]`` to ``points [N,3]``."""
+    offset = points - center
+    return offset / offset.norm(dim=-1, keepdim=True).clamp_min(1e-12)

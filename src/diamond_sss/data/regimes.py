@@ -1,0 +1,144 @@
+"""Capture regimes (supplement Sec. B): which views, lights and images of a capture are used.
+
+Spec strings:
+    ``all``                   every observation;
+    ``all-views-1-light``     every view under one light, lights spread evenly over the views;
+    ``views=5%,lights=5%``    fractions of the lattice's views and lights (``max(1, round(p N))`` each),
+                              and every captured image among them; counts (``views=5,lights=6``) and
+                              ``all`` work on either side;
+    ``images=10``             that many images, spread jointly over view and light directions.
+
+Views and lights are picked by farthest-point sampling on their unit directions from the scene centre,
+started from a seeded random choice; only observations that exist are used.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import Tensor
+
+from diamond_sss.data.dataset import OLATDataset, directions_from
+
+
+@dataclass(frozen=True)
+class RegimeSelection:
+    """The outcome of a regime: lattice view and light indices and the chosen observation indices."""
+
+    spec: str
+    seed: int
+    views: list[int]
+    lights: list[int]
+    observations: list[int]
+
+    def to_json(self) -> dict:
+        return {**asdict(self), "images": len(self.observations)}
+
+
+def farthest_point_order(directions: Tensor, count: int, generator: torch.Generator) -> list[int]:
+    """Greedy farthest-point sampling of ``count`` rows of unit vectors ``[N,3]``.
+
+    Starts at a random row drawn from ``generator``; each next pick maximises the smallest Euclidean
+    distance (monotone in angle on the unit sphere) to those already picked. Ties go to the lowest index.
+    """
+    total = directions.shape[0]
+    count = min(count, total)
+    if count <= 0:
+        return []
+    first = int(torch.randint(total, (1,), generator=generator))
+    chosen = [first]
+    nearest = (directions - directions[first]).norm(dim=-1)
+    for _ in range(count - 1):
+        nearest[chosen] = -1.0
+        pick = int(torch.argmax(nearest))
+        chosen.append(pick)
+        nearest = torch.minimum(nearest, (directions - directions[pick]).norm(dim=-1))
+    return chosen
+
+
+def resolve_count(value: str, total: int, key: str) -> int:
+    """``"5%"`` -> ``max(1, round(0.05 total))``; ``"7"`` -> 7 (at most ``total``); ``"all"`` -> ``total``."""
+    value = value.strip()
+    if value == "all":
+        return total
+    if value.endswith("%"):
+        try:
+            fraction = float(value[:-1]) / 100.0
+        except ValueError as exc:
+            raise ValueError(f"regime: '{key}={value}' is not a percentage") from exc
+        if not 0.0 < fraction <= 1.0:
+            raise ValueError(f"regime: '{key}={value}' must be in (0%, 100%]")
+        return max(1, round(fraction * total))
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"regime: '{key}={value}' must be a positive count, a percentage or 'all'")
+    return min(int(value), total)
+
+
+def select_regime(dataset: OLATDataset, spec: str, seed: int = 0) -> RegimeSelection:
+    """Apply a regime spec to a dataset (see the module docstring). Deterministic in ``(spec, seed)``."""
+    spec = spec.strip()
+    generator = torch.Generator().manual_seed(seed)
+    present = dataset.presence
+    center = dataset.bounds.center
+    view_dirs = directions_from(dataset.camera_centers, center)
+    light_dirs = directions_from(dataset.light_positions, center)
+    captured_views = torch.nonzero(present.any(1)).flatten()
+    captured_lights = torch.nonzero(present.any(0)).flatten()
+
+    if spec == "all":
+        return _from_observations(dataset, spec, seed, range(len(dataset.observations)))
+    if spec == "all-views-1-light":
+        view_order = [int(captured_views[i]) for i in farthest_point_order(view_dirs[captured_views],
+                                                                            len(captured_views), generator)]
+        light_order = [int(captured_lights[i]) for i in farthest_point_order(light_dirs[captured_lights],
+                                                                              len(captured_lights), generator)]
+        chosen = []
+        for rank, view in enumerate(view_order):
+            rotated = light_order[rank % len(light_order):] + light_order[: rank % len(light_order)]
+            light = next(light for light in rotated if present[view, light])
+            chosen.append(dataset.observation_index(view, light))
+        return _from_observations(dataset, spec, seed, chosen)
+    match = re.fullmatch(r"images=(\d+)", spec)
+    if match:
+        return _select_images(dataset, spec, seed, int(match.group(1)), view_dirs, light_dirs, generator)
+    parts = dict(_key_value(part, spec) for part in spec.split(","))
+    if set(parts) != {"views", "lights"}:
+        raise ValueError(f"regime '{spec}': expected 'all', 'all-views-1-light', 'images=N' or "
+                         f"'views=X,lights=Y' (X, Y: a percentage like 5%, a count, or all)")
+    num_views = resolve_count(parts["views"], len(captured_views), "views")
+    num_lights = resolve_count(parts["lights"], len(captured_lights), "lights")
+    views = [int(captured_views[i]) for i in farthest_point_order(view_dirs[captured_views], num_views, generator)]
+    lights = [int(captured_lights[i]) for i in farthest_point_order(light_dirs[captured_lights], num_lights,
+                                                                     generator)]
+    light_set = set(lights)
+    view_set = set(views)
+    chosen = [i for i, obs in enumerate(dataset.observations) if obs.view in view_set and obs.light in light_set]
+    return RegimeSelection(spec=spec, seed=seed, views=sorted(views), lights=sorted(lights), observations=chosen)
+
+
+def _key_value(part: str, spec: str) -> tuple[str, str]:
+    if "=" not in part:
+        raise ValueError(f"regime '{spec}': '{part}' is not of the form key=value")
+    key, value = part.split("=", 1)
+    return key.strip(), value.strip()
+
+
+def _select_images(dataset: OLATDataset, spec: str, seed: int, count: int, view_dirs: Tensor,
+                   light_dirs: Tensor, generator: torch.Generator) -> RegimeSelection:
+    """Farthest-point sampling over observations in the joint (view direction, light direction) space."""
+    if count < 1:
+        raise ValueError(f"regime '{spec}': images must be >= 1")
+    views = torch.tensor([obs.view for obs in dataset.observations])
+    lights = torch.tensor([obs.light for obs in dataset.observations])
+    joint = torch.cat([view_dirs[views], light_dirs[lights]], dim=-1)
+    chosen = sorted(farthest_point_order(joint, count, generator))
+    return _from_observations(dataset, spec, seed, chosen)
+
+
+def _from_observations(dataset: OLATDataset, spec: str, seed: int, indices) -> RegimeSelection:
+    indices = sorted(int(i) for i in indices)
+    views = sorted({dataset.observations[i].view for i in indices})
+    lights = sorted({dataset.observations[i].light for i in indices})
+    return RegimeSelection(spec=spec, seed=seed, views=views, lights=lights, observations=indices)

@@ -1,0 +1,260 @@
+"""Parsing of ``transforms_<split>.json`` files (method.md §1), both variants, into per-image records.
+
+* SSS-3DGS variant: one frame per camera view with ``transform_matrix``, ``file_paths`` (one image per
+  light), ``light_positions`` and optional ``light_intensities`` (and ``mask_paths``).
+* Per-image variant (NRHints / GS3 / SSD-GS): one frame per image with ``file_path``, ``transform_matrix``,
+  ``pl_pos`` and optional ``pl_intensity`` (and ``mask_path``).
+
+Intrinsics come from ``camera_angle_x`` (+ optional ``camera_angle_y``) or ``fl_x, fl_y, cx, cy``, at the
+top level or per frame (per frame wins); the image size from ``w, h`` or from the image files. Optional
+per-view geometry maps: ``depth_path`` (float32 ``.npy`` camera z) and ``normal_path`` (float32 ``.npy``
+world-space unit normals). Nothing is written here and no pixel is decoded.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from diamond_sss.data.errors import DataError, data_error
+from diamond_sss.data.images import read_header
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels of the full-resolution image; ``fov_x`` set when given as an angle."""
+
+    fx: float | None
+    fy: float | None
+    cx: float | None
+    cy: float | None
+    fov_x: float | None = None
+    fov_y: float | None = None
+
+
+@dataclass(frozen=True)
+class ImageRecord:
+    """One (view, light) image as written in the JSON, before deduplication into the lattice."""
+
+    frame: int
+    c2w: np.ndarray
+    intrinsics: Intrinsics
+    width: int
+    height: int
+    image_path: Path
+    mask_path: Path | None
+    light_position: np.ndarray
+    light_intensity: np.ndarray
+    depth_path: Path | None
+    normal_path: Path | None
+    file_size: tuple[int, int]
+
+
+def transforms_path(root: Path, split: str) -> Path:
+    """``root/transforms_<split>.json``; a clear error listing the splits present when it is missing."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DataError(f"data folder not found: {root}")
+    path = root / f"transforms_{split}.json"
+    if not path.is_file():
+        found = sorted(p.stem[len("transforms_"):] for p in root.glob("transforms_*.json"))
+        raise DataError(f"{path}: split '{split}' not found; splits in {root}: {found or 'none'}")
+    return path
+
+
+def available_splits(root: Path) -> list[str]:
+    """Names of the splits (``transforms_<name>.json``) in a data folder."""
+    return sorted(p.stem[len("transforms_"):] for p in Path(root).glob("transforms_*.json"))
+
+
+def parse_transforms(path: Path) -> list[ImageRecord]:
+    """Read a transforms JSON file into one :class:`ImageRecord` per image (both variants)."""
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise data_error(path, f"invalid JSON ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise data_error(path, "expected a JSON object at the top level")
+    frames = meta.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise data_error(path, "expected a non-empty list", key="frames")
+    root = path.parent
+    records: list[ImageRecord] = []
+    for index, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise data_error(path, "expected a JSON object", frame=index)
+        records.extend(_parse_frame(path, root, meta, frame, index))
+    return records
+
+
+def _parse_frame(path: Path, root: Path, meta: dict, frame: dict, index: int) -> list[ImageRecord]:
+    c2w = _matrix(path, frame, index)
+    intrinsics = _intrinsics(path, meta, frame, index)
+    depth_path = _optional_file(path, root, frame, index, "depth_path")
+    normal_path = _optional_file(path, root, frame, index, "normal_path")
+    if "file_paths" in frame:
+        files = _list(path, frame, index, "file_paths")
+        positions = _list(path, frame, index, "light_positions")
+        if len(positions) != len(files):
+            raise data_error(path, f"has {len(positions)} entries but 'file_paths' has {len(files)}",
+                             frame=index, key="light_positions")
+        intensities = frame.get("light_intensities", [[1.0, 1.0, 1.0]] * len(files))
+        if not isinstance(intensities, list) or len(intensities) != len(files):
+            raise data_error(path, f"expected a list of {len(files)} [r,g,b] entries", frame=index,
+                             key="light_intensities")
+        masks = frame.get("mask_paths", [None] * len(files))
+        if not isinstance(masks, list) or len(masks) != len(files):
+            raise data_error(path, f"expected a list of {len(files)} paths", frame=index, key="mask_paths")
+        items = [
+            (files[k], masks[k], _vector(path, positions[k], index, f"light_positions[{k}]"),
+             _intensity(path, intensities[k], index, f"light_intensities[{k}]"))
+            for k in range(len(files))
+        ]
+    elif "file_path" in frame:
+        if "pl_pos" not in frame:
+            raise data_error(path, "missing (the light position of this image)", frame=index, key="pl_pos")
+        items = [(frame["file_path"], frame.get("mask_path"), _vector(path, frame["pl_pos"], index, "pl_pos"),
+                  _intensity(path, frame.get("pl_intensity", 1.0), index, "pl_intensity"))]
+    else:
+        raise data_error(path, "missing: expected 'file_paths' (SSS-3DGS) or 'file_path' (per-image)",
+                         frame=index, key="file_paths")
+    records = []
+    for k, (file_entry, mask_entry, light_pos, light_rgb) in enumerate(items):
+        key = "file_path" if "file_path" in frame else f"file_paths[{k}]"
+        image_path = _resolve_image(path, root, file_entry, index, key)
+        header = read_header(image_path)
+        width = _int_or(meta, frame, "w", header.width)
+        height = _int_or(meta, frame, "h", header.height)
+        mask_path = _resolve_mask(path, root, image_path, mask_entry, index, key, header.channels)
+        records.append(ImageRecord(
+            frame=index, c2w=c2w, intrinsics=intrinsics, width=width, height=height, image_path=image_path,
+            mask_path=mask_path, light_position=light_pos, light_intensity=light_rgb, depth_path=depth_path,
+            normal_path=normal_path, file_size=(header.width, header.height),
+        ))
+    return records
+
+
+def _list(path: Path, frame: dict, index: int, key: str) -> list:
+    if key not in frame:
+        raise data_error(path, "missing", frame=index, key=key)
+    value = frame[key]
+    if not isinstance(value, list) or not value:
+        raise data_error(path, f"expected a non-empty list, got {type(value).__name__}", frame=index, key=key)
+    return value
+
+
+def _matrix(path: Path, frame: dict, index: int) -> np.ndarray:
+    if "transform_matrix" not in frame:
+        raise data_error(path, "missing", frame=index, key="transform_matrix")
+    try:
+        matrix = np.asarray(frame["transform_matrix"], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise data_error(path, f"not a numeric matrix ({exc})", frame=index, key="transform_matrix") from exc
+    if matrix.shape == (3, 4):
+        matrix = np.vstack([matrix, [0.0, 0.0, 0.0, 1.0]])
+    if matrix.shape != (4, 4):
+        raise data_error(path, f"expected 4x4, got shape {list(matrix.shape)}", frame=index, key="transform_matrix")
+    if not np.isfinite(matrix).all():
+        raise data_error(path, "contains NaN or infinity", frame=index, key="transform_matrix")
+    det = np.linalg.det(matrix[:3, :3])
+    if abs(det) < 1e-8 or not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        raise data_error(path, f"not an invertible rigid transform (det of rotation {det:.3g}, last row "
+                         f"{matrix[3].tolist()})", frame=index, key="transform_matrix")
+    return matrix
+
+
+def _vector(path: Path, value: Any, index: int, key: str) -> np.ndarray:
+    try:
+        vector = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise data_error(path, f"not numeric ({exc})", frame=index, key=key) from exc
+    if vector.shape != (3,) or not np.isfinite(vector).all():
+        raise data_error(path, f"expected 3 finite numbers, got {value!r}", frame=index, key=key)
+    return vector
+
+
+def _intensity(path: Path, value: Any, index: int, key: str) -> np.ndarray:
+    if isinstance(value, (int, float)):
+        value = [value] * 3
+    vector = _vector(path, value, index, key)
+    if (vector < 0).any():
+        raise data_error(path, f"light intensity must be non-negative, got {value!r}", frame=index, key=key)
+    return vector
+
+
+def _number(path: Path, source: dict, key: str, index: int | None) -> float | None:
+    if key not in source:
+        return None
+    value = source[key]
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+        raise data_error(path, f"expected a finite number, got {value!r}", frame=index, key=key)
+    return float(value)
+
+
+def _intrinsics(path: Path, meta: dict, frame: dict, index: int) -> Intrinsics:
+    def pick(key: str) -> float | None:
+        local = _number(path, frame, key, index)
+        return local if local is not None else _number(path, meta, key, None)
+
+    fx, fy, cx, cy = pick("fl_x"), pick("fl_y"), pick("cx"), pick("cy")
+    fov_x, fov_y = pick("camera_angle_x"), pick("camera_angle_y")
+    if fx is None and fov_x is None:
+        raise data_error(path, "missing: need 'camera_angle_x' or 'fl_x' (top level or per frame)",
+                         frame=index, key="camera_angle_x")
+    for key, value in (("fl_x", fx), ("fl_y", fy), ("camera_angle_x", fov_x), ("camera_angle_y", fov_y)):
+        if value is not None and value <= 0:
+            raise data_error(path, f"must be positive, got {value}", frame=index, key=key)
+    return Intrinsics(fx=fx, fy=fy if fy is not None else fx, cx=cx, cy=cy, fov_x=fov_x, fov_y=fov_y)
+
+
+def _int_or(meta: dict, frame: dict, key: str, default: int) -> int:
+    value = frame.get(key, meta.get(key, default))
+    return int(value)
+
+
+def _resolve_image(path: Path, root: Path, entry: Any, index: int, key: str) -> Path:
+    if not isinstance(entry, str) or not entry:
+        raise data_error(path, f"expected a relative file path, got {entry!r}", frame=index, key=key)
+    base = (root / entry).resolve()
+    candidates = [base] + [base.with_name(base.name + suffix) for suffix in IMAGE_SUFFIXES]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    raise data_error(path, f"image file not found: {base} (also tried the suffixes {list(IMAGE_SUFFIXES)})",
+                     frame=index, key=key)
+
+
+def _resolve_mask(path: Path, root: Path, image_path: Path, entry: Any, index: int, key: str,
+                  channels: int) -> Path | None:
+    if entry is not None:
+        mask = (root / str(entry)).resolve()
+        if not mask.is_file():
+            raise data_error(path, f"mask file not found: {mask}", frame=index, key="mask_path")
+        return mask
+    if channels in (2, 4):
+        return None
+    for candidate in (image_path.with_name(image_path.stem + "_mask.png"),
+                      image_path.parent / "masks" / (image_path.stem + ".png")):
+        if candidate.is_file():
+            return candidate
+    raise data_error(path, f"{image_path} has no alpha channel and no mask file (give 'mask_path' / 'mask_paths', "
+                     f"or put {image_path.stem}_mask.png beside it)", frame=index, key=key)
+
+
+def _optional_file(path: Path, root: Path, frame: dict, index: int, key: str) -> Path | None:
+    if key not in frame:
+        return None
+    entry = frame[key]
+    if not isinstance(entry, str):
+        raise data_error(path, f"expected a relative path, got {entry!r}", frame=index, key=key)
+    file = (root / entry).resolve()
+    if not file.is_file():
+        raise data_error(path, f"file not found: {file}", frame=index, key=key)
+    return file
