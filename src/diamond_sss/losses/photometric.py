@@ -1,0 +1,89 @@
+"""Photometric reconstruction terms (supplement Eq. A.1, first line).
+
+Images are ``[B,H,W,C]`` channels-last float tensors (linear radiance during training).
+"""
+
+from __future__ import annotations
+
+import torch
+from pytorch_msssim import ssim as _msssim_ssim
+from torch import Tensor
+
+SSIM_WINDOW = 11
+
+
+def _check_pair(pred: Tensor, target: Tensor) -> None:
+    if pred.ndim != 4:
+        raise ValueError(f"expected images of shape [B,H,W,C], got pred of shape {tuple(pred.shape)}")
+    if pred.shape != target.shape:
+        raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} must have the same shape")
+
+
+def _check_weights(weights: Tensor, batch: int) -> None:
+    if weights.shape != (batch,):
+        raise ValueError(f"weights must have shape [B] = [{batch}], got {tuple(weights.shape)}")
+
+
+def l1_per_image(pred: Tensor, target: Tensor) -> Tensor:
+    """Mean absolute error of each image, ``L1_b = mean_{x,c} |pred - target|``. ``[B,H,W,C] -> [B]``."""
+    _check_pair(pred, target)
+    return (pred - target).abs().mean(dim=(1, 2, 3))
+
+
+def ssim_per_image(pred: Tensor, target: Tensor) -> Tensor:
+    """Gaussian-window SSIM (window 11, sigma 1.5, ``data_range = 1``) of each image, channel-averaged.
+
+    Wraps ``pytorch_msssim.ssim`` (NCHW inside). ``[B,H,W,C] -> [B]``. Both sides must be at least
+    11 pixels (the window size).
+    """
+    _check_pair(pred, target)
+    if min(pred.shape[1], pred.shape[2]) < SSIM_WINDOW:
+        raise ValueError(
+            f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {pred.shape[1]}x{pred.shape[2]}"
+        )
+    nchw_pred = pred.permute(0, 3, 1, 2)
+    nchw_target = target.permute(0, 3, 1, 2)
+    return _msssim_ssim(nchw_pred, nchw_target, data_range=1.0, size_average=False, win_size=SSIM_WINDOW)
+
+
+def dssim_per_image(pred: Tensor, target: Tensor) -> Tensor:
+    """Structural dissimilarity ``1 - SSIM`` of each image. ``[B,H,W,C] -> [B]``."""
+    return 1.0 - ssim_per_image(pred, target)
+
+
+def weighted_mean(values: Tensor, weights: Tensor | None) -> Tensor:
+    """``sum_b w_b v_b / sum_b w_b`` (plain mean when ``weights`` is None). ``[B] -> []``."""
+    if weights is None:
+        return values.mean()
+    _check_weights(weights, values.shape[0])
+    weights = weights.to(values)
+    if bool((weights < 0).any()):
+        raise ValueError("per-image weights must be non-negative")
+    return (weights * values).sum() / weights.sum().clamp_min(torch.finfo(values.dtype).tiny)
+
+
+def l1_loss(pred: Tensor, target: Tensor, weights: Tensor | None = None) -> Tensor:
+    """Per-image-weighted L1, ``sum_b w_b L1_b / sum_b w_b``. ``[B,H,W,C] -> []``."""
+    return weighted_mean(l1_per_image(pred, target), weights)
+
+
+def dssim_loss(pred: Tensor, target: Tensor, weights: Tensor | None = None) -> Tensor:
+    """Per-image-weighted ``1 - SSIM``, ``sum_b w_b (1 - SSIM_b) / sum_b w_b``. ``[B,H,W,C] -> []``."""
+    return weighted_mean(dssim_per_image(pred, target), weights)
+
+
+def photometric_loss(
+    pred: Tensor, target: Tensor, lambda_dssim: float, weights: Tensor | None = None
+) -> Tensor:
+    """Mixed photometric objective of Eq. A.1.
+
+    ``L = sum_b w_b [(1 - l) L1_b + l (1 - SSIM_b)] / sum_b w_b`` with ``l = lambda_dssim`` in ``[0, 1]``.
+    ``weights [B]`` are per-image weights (e.g. ``alpha = 0.5`` for diffusion-generated images, 1 for
+    real ones); ``None`` weighs every image 1. ``[B,H,W,C] -> []``.
+    """
+    if not 0.0 <= lambda_dssim <= 1.0:
+        raise ValueError(f"lambda_dssim must lie in [0, 1], got {lambda_dssim}")
+    per_image = (1.0 - lambda_dssim) * l1_per_image(pred, target)
+    if lambda_dssim > 0.0:
+        per_image = per_image + lambda_dssim * dssim_per_image(pred, target)
+    return weighted_mean(per_image, weights)
