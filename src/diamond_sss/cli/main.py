@@ -1,2 +1,32 @@
-def main():
-    pass
+"""The ``diamond-sss`` command line: one subcommand per job, each a typed function (tyro)."""
+
+from __future__ import annotations
+
+import sys
+from typing import Callable
+
+import tyro
+
+from diamond_sss.cli.data_commands import info, regimes
+from diamond_sss.cli.demo import demo
+from diamond_sss.data.errors import DataError
+
+
+def commands() -> dict[str, Callable[..., None]]:
+    """The subcommands, by name."""
+    from diamond_sss.synth.cli import synth
+
+    return {"demo": demo, "info": info, "regimes": regimes, "synth": synth}
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of the ``diamond-sss`` console script."""
+    try:
+        tyro.extras.subcommand_cli_from_dict(commands(), args=argv, prog="diamond-sss")
+    except (DataError, FileNotFoundError, ValueError) as exc:
+        print(f"diamond-sss: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from exc
+
+
+if __name__ == "__main__":
+    main()

@@ -134,8 +134,7 @@ class OLATDataset:
         records = parse_transforms(self.json_path)
         self.cameras, view_of_record = _deduplicate_cameras(records, self.downscale)
         self.lights, light_of_record = _deduplicate_lights(records, light_tolerance)
-        self.observations = _observations(self.json_path, records, view_of_record, light_of_record, self.cameras,
-                                          self.downscale)
+        self.observations = _observations(self.json_path, records, view_of_record, light_of_record)
         self._geometry_maps = {view_of_record[i]: (r.depth_path, r.normal_path) for i, r in enumerate(records)}
         self._cache = _ImageCache(cache_images)
 
@@ -362,7 +361,7 @@ def _deduplicate_cameras(records: list[ImageRecord], downscale: float) -> tuple[
     view_of_record = []
     for record in records:
         intr = record.intrinsics
-        key = (tuple(np.round(record.c2w, 6).ravel().tolist()), intr, record.width, record.height)
+        key = (tuple(np.round(record.c2w, 6).ravel().tolist()), intr)
         if key not in keys:
             w2c, K, width, height = _camera_matrix(record, downscale)
             keys[key] = len(cameras)
@@ -396,17 +395,16 @@ def _deduplicate_lights(records: list[ImageRecord], tolerance: float) -> tuple[l
 
 
 def _observations(json_path: Path, records: list[ImageRecord], view_of_record: list[int],
-                  light_of_record: list[int], cameras: list[Camera], downscale: float) -> list[Observation]:
+                  light_of_record: list[int]) -> list[Observation]:
     observations = []
     seen: dict[tuple[int, int], Path] = {}
+    first_size: dict[int, tuple[int, int]] = {}
     for record, view, light in zip(records, view_of_record, light_of_record):
-        camera = cameras[view]
-        expected = (int(round(record.width / downscale)), int(round(record.height / downscale)))
-        if record.file_size != (record.width, record.height) or expected != (camera.width, camera.height):
+        reference = first_size.setdefault(view, (record.width, record.height))
+        if record.file_size != reference:
             file_w, file_h = record.file_size
             raise data_error(json_path, f"image {record.image_path} is {file_w}x{file_h} but view {view} is "
-                             f"{camera.width}x{camera.height} (before downscale {record.width}x{record.height})",
-                             frame=record.frame, key="w/h")
+                             f"{reference[0]}x{reference[1]}", frame=record.frame, key="w/h")
         if (view, light) in seen:
             warnings.warn(f"{json_path}: frame {record.frame}: {record.image_path} repeats view {view} under light "
                           f"{light} (already {seen[(view, light)]}); keeping the first", stacklevel=3)

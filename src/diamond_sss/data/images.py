@@ -58,9 +58,10 @@ def read_header(path: Path) -> ImageHeader:
 
 
 def _png_palette_has_alpha(path: Path) -> bool:
-    reader = png.Reader(filename=str(path))
-    reader.preamble()
-    return reader.trns is not None
+    with open(path, "rb") as handle:
+        reader = png.Reader(file=handle)
+        reader.preamble()
+        return reader.trns is not None
 
 
 def read_image_array(path: Path) -> np.ndarray:
@@ -73,12 +74,12 @@ def read_image_array(path: Path) -> np.ndarray:
     try:
         with open(path, "rb") as handle:
             is_png = handle.read(8) == _PNG_SIGNATURE
-        if is_png:
-            width, height, rows, info = png.Reader(filename=str(path)).asDirect()
-            planes = info["planes"]
-            array = np.vstack([np.asarray(row) for row in rows]).reshape(height, width, planes)
-            scale = float(2 ** info["bitdepth"] - 1)
-        else:
+            if is_png:
+                handle.seek(0)
+                width, height, rows, info = png.Reader(file=handle).asDirect()
+                array = np.vstack([np.asarray(row) for row in rows]).reshape(height, width, info["planes"])
+                scale = float(2 ** info["bitdepth"] - 1)
+        if not is_png:
             array = iio.imread(path)
             if array.ndim == 2:
                 array = array[..., None]

@@ -1,0 +1,228 @@
+"""Data layer: conventions round trips, both JSON variants, images, bounds, bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from capture_factory import FOV_X, SPHERE_RADIUS, make_capture
+from diamond_sss.data import DataError, OLATDataset
+from diamond_sss.data.conventions import (
+    camera_centers,
+    intrinsics_from_fov,
+    linear_to_srgb,
+    look_at_opengl_c2w,
+    opencv_w2c_to_opengl_c2w,
+    opengl_c2w_to_opencv_w2c,
+    project_points,
+    srgb_to_linear,
+    unproject_pixels,
+)
+from diamond_sss.data.images import write_png
+
+
+def test_known_point_projects_to_known_pixel():
+    c2w = look_at_opengl_c2w(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3))
+    w2c = opengl_c2w_to_opencv_w2c(c2w).float()
+    K = intrinsics_from_fov(math.radians(90.0), 100, 80)
+    points = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.0, 0.5, 0.0]])
+    uv, z = project_points(points, w2c, K)
+    fx = 50.0  # W / (2 tan 45deg)
+    assert torch.allclose(z, torch.full((3,), 3.0), atol=1e-5)
+    assert torch.allclose(uv[0], torch.tensor([50.0, 40.0]), atol=1e-4)
+    assert torch.allclose(uv[1], torch.tensor([50.0 + fx * 0.5 / 3.0, 40.0]), atol=1e-4)
+    # world +Y is image-up for this camera: v decreases
+    assert torch.allclose(uv[2], torch.tensor([50.0, 40.0 - fx * 0.5 / 3.0]), atol=1e-4)
+    back = unproject_pixels(uv, z, w2c, K)
+    assert torch.allclose(back, points, atol=1e-5)
+    assert torch.allclose(opencv_w2c_to_opengl_c2w(w2c.double()), c2w, atol=1e-6)
+    assert torch.allclose(camera_centers(w2c), torch.tensor([0.0, 0.0, 3.0]), atol=1e-5)
+
+
+def test_srgb_round_trip():
+    x = torch.linspace(0, 1, 101)
+    assert torch.allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-6)
+    assert float(srgb_to_linear(torch.tensor(0.5))) == pytest.approx(0.21404, abs=1e-4)
+
+
+@pytest.mark.parametrize("variant", ["sss3dgs", "per-image"])
+def test_both_variants_load_the_same_lattice(tmp_path, variant):
+    truth = make_capture(tmp_path / variant, views=5, lights=3, size=16, variant=variant)
+    ds = OLATDataset(tmp_path / variant, "train")
+    assert (ds.num_views, ds.num_lights, len(ds)) == (5, 3, 15)
+    assert (ds.width, ds.height) == (16, 16)
+    assert bool(ds.presence.all())
+    assert torch.allclose(ds.intrinsics[0], intrinsics_from_fov(FOV_X, 16, 16))
+    for v in range(5):
+        expected = opengl_c2w_to_opencv_w2c(torch.from_numpy(truth["c2w"][v])).float()
+        assert torch.allclose(ds.viewmats[v], expected, atol=1e-5)
+    assert torch.allclose(ds.light_positions.double(), torch.from_numpy(truth["lights"]), atol=1e-5)
+    # the object centre projects to the image centre of every view
+    uv, _ = project_points(torch.zeros(1, 3), ds.viewmats, ds.intrinsics)
+    assert torch.allclose(uv[:, 0], torch.full((5, 2), 8.0), atol=1e-3)
+    summary = ds.summary()
+    assert summary["views"] == 5 and summary["lights"] == 3 and summary["images"] == 15
+
+
+@pytest.mark.parametrize("bit_depth,tolerance", [(8, 4e-3), (16, 2e-5)])
+def test_images_decode_to_linear_truth(tmp_path, bit_depth, tolerance):
+    truth = make_capture(tmp_path, views=2, lights=2, size=16, bit_depth=bit_depth)
+    ds = OLATDataset(tmp_path)
+    for index, (v, light, _, rgb) in enumerate(truth["images"]):
+        sample = ds.load(ds.observation_index(v, light))
+        assert sample.rgb.shape == (16, 16, 3) and sample.mask.shape == (16, 16, 1)
+        assert float((sample.rgb - torch.from_numpy(rgb).float()).abs().max()) < tolerance
+    white = OLATDataset(tmp_path, background="white").load(0)
+    outside = white.mask[..., 0] == 0
+    assert torch.allclose(white.rgb[outside], torch.ones(3))
+
+
+def test_downscale_scales_images_and_intrinsics(tmp_path):
+    make_capture(tmp_path, views=3, lights=2, size=16)
+    full = OLATDataset(tmp_path)
+    half = OLATDataset(tmp_path, downscale=2)
+    assert (half.width, half.height) == (8, 8)
+    assert half.load(0).rgb.shape == (8, 8, 3)
+    assert torch.allclose(half.intrinsics[:, :2], full.intrinsics[:, :2] / 2)
+    assert torch.allclose(half.load(0).mask.mean(), full.load(0).mask.mean(), atol=1e-6)
+
+
+def test_scene_bounds_enclose_the_object(tmp_path):
+    make_capture(tmp_path, views=8, lights=2, size=16)
+    bounds = OLATDataset(tmp_path).bounds
+    assert float(bounds.center.norm()) < 1e-3
+    assert SPHERE_RADIUS <= bounds.radius < 3.0
+    assert bounds.near < 3.0 - SPHERE_RADIUS and bounds.far > 3.0 + SPHERE_RADIUS
+
+
+def test_lights_within_tolerance_are_one_lattice_light(tmp_path):
+    make_capture(tmp_path, views=3, lights=2, size=8)
+    path = tmp_path / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    meta["frames"][1]["light_positions"][0][0] += 1e-6
+    path.write_text(json.dumps(meta))
+    ds = OLATDataset(tmp_path)
+    assert ds.num_lights == 2 and len(ds) == 6
+
+
+def test_batches_are_seeded_and_cover_each_epoch(tmp_path):
+    make_capture(tmp_path, views=3, lights=2, size=8)
+    ds = OLATDataset(tmp_path)
+    first = [ds.batch_indices(step, 2, seed=7) for step in range(3)]
+    assert first == [ds.batch_indices(step, 2, seed=7) for step in range(3)]
+    assert sorted(sum(first, [])) == list(range(6))
+    assert first != [ds.batch_indices(step, 2, seed=8) for step in range(3)]
+    resumed = ds.iter_batches(2, seed=7, start_step=1)
+    assert next(resumed) == first[1]
+
+
+def test_cache_is_bounded(tmp_path):
+    make_capture(tmp_path, views=3, lights=2, size=8)
+    ds = OLATDataset(tmp_path, cache_images=2)
+    for i in range(6):
+        ds.load(i)
+    assert len(ds._cache.entries) == 2
+
+
+def test_loading_writes_nothing_into_the_data_folder(tmp_path):
+    make_capture(tmp_path, views=2, lights=2, size=8)
+    before = {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*")}
+    ds = OLATDataset(tmp_path, downscale=2)
+    ds.load_batch(range(len(ds)))
+    _ = ds.bounds
+    after = {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*")}
+    assert before == after
+
+
+def test_subset_keeps_lattice_indices(tmp_path):
+    make_capture(tmp_path, views=3, lights=2, size=8)
+    ds = OLATDataset(tmp_path)
+    sub = ds.subset([5, 0])
+    assert sub.num_views == 3 and len(sub) == 2
+    assert (sub.observations[0].view, sub.observations[0].light) == (ds.observations[5].view,
+                                                                     ds.observations[5].light)
+    assert int(sub.presence.sum()) == 2 and int(ds.presence.sum()) == 6
+
+
+# ---------------------------------------------------------------- bad input
+def _edit(tmp_path, edit):
+    path = tmp_path / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    edit(meta)
+    path.write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize(
+    "edit,expected",
+    [
+        (lambda m: m["frames"][1].pop("transform_matrix"), r"frame 1: key 'transform_matrix': missing"),
+        (lambda m: m["frames"][0].update(transform_matrix=[[1, 0, 0], [0, 1, 0], [0, 0, 1]]),
+         r"frame 0: key 'transform_matrix': expected 4x4"),
+        (lambda m: m["frames"][0]["transform_matrix"][0].__setitem__(3, float("nan")),
+         r"frame 0: key 'transform_matrix': contains NaN"),
+        (lambda m: m["frames"][0].update(transform_matrix=np.zeros((4, 4)).tolist()),
+         r"frame 0: key 'transform_matrix': not an invertible"),
+        (lambda m: m["frames"][1]["light_positions"].pop(), r"frame 1: key 'light_positions': has 1 entries"),
+        (lambda m: m["frames"][0].pop("light_positions"), r"frame 0: key 'light_positions': missing"),
+        (lambda m: m["frames"][0]["light_positions"].__setitem__(0, [1, 2]),
+         r"frame 0: key 'light_positions\[0\]': expected 3 finite numbers"),
+        (lambda m: m.pop("camera_angle_x"), r"frame 0: key 'camera_angle_x': missing"),
+        (lambda m: m["frames"][1]["file_paths"].__setitem__(0, "train/nope.png"),
+         r"frame 1: key 'file_paths\[0\]': image file not found"),
+        (lambda m: m.update(frames={}), r"key 'frames'"),
+    ],
+)
+def test_bad_json_gives_clear_errors(tmp_path, edit, expected):
+    make_capture(tmp_path, views=2, lights=2, size=8)
+    _edit(tmp_path, edit)
+    with pytest.raises(DataError, match=expected) as info:
+        OLATDataset(tmp_path)
+    assert "transforms_train.json" in str(info.value)
+
+
+def test_invalid_json_and_missing_split(tmp_path):
+    make_capture(tmp_path, views=2, lights=2, size=8)
+    with pytest.raises(DataError, match=r"split 'val' not found.*\['train'\]"):
+        OLATDataset(tmp_path, "val")
+    (tmp_path / "transforms_train.json").write_text("{not json")
+    with pytest.raises(DataError, match="invalid JSON"):
+        OLATDataset(tmp_path)
+    with pytest.raises(DataError, match="data folder not found"):
+        OLATDataset(tmp_path / "missing")
+
+
+def test_images_of_one_view_with_different_sizes(tmp_path):
+    make_capture(tmp_path, views=2, lights=2, size=8)
+    write_png(tmp_path / "train/v001_l001.png", np.zeros((10, 10, 4), np.uint8))
+    with pytest.raises(DataError, match=r"frame 1: key 'w/h': image .*v001_l001.png is 10x10 but view 1 is 8x8"):
+        OLATDataset(tmp_path)
+
+
+def test_rgb_without_alpha_needs_a_mask_file(tmp_path):
+    make_capture(tmp_path, views=2, lights=1, size=8)
+    write_png(tmp_path / "train/v000_l000.png", np.full((8, 8, 3), 128, np.uint8))
+    with pytest.raises(DataError, match=r"frame 0: key 'file_paths\[0\]': .*v000_l000.png has no alpha channel"):
+        OLATDataset(tmp_path)
+    mask = np.zeros((8, 8), np.uint8)
+    mask[2:6, 2:6] = 255
+    write_png(tmp_path / "train/v000_l000_mask.png", mask)
+    sample = OLATDataset(tmp_path).load(0)
+    assert float(sample.mask.sum()) == 16.0
+    assert float(sample.rgb[0, 0].abs().sum()) == 0.0  # straight RGB is premultiplied by the mask
+
+
+def test_empty_mask_is_a_warning(tmp_path):
+    make_capture(tmp_path, views=2, lights=1, size=8)
+    write_png(tmp_path / "train/v001_l000.png", np.zeros((8, 8, 4), np.uint8))
+    ds = OLATDataset(tmp_path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds.load(ds.observation_index(1, 0))
+        ds.load(ds.observation_index(1, 0))
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 1 and "v001_l000.png: the mask is empty" in messages[0]

@@ -1,0 +1,119 @@
+"""Capture regimes: counts, determinism, farthest-point spread, the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from capture_factory import make_capture
+from diamond_sss.cli.main import main
+from diamond_sss.data import OLATDataset, select_regime
+from diamond_sss.data.dataset import directions_from
+from diamond_sss.data.regimes import farthest_point_order, resolve_count
+
+
+@pytest.fixture(scope="module")
+def lattice(tmp_path_factory):
+    root = tmp_path_factory.mktemp("lattice")
+    make_capture(root, views=20, lights=12, size=8)
+    return root
+
+
+def test_resolve_count():
+    assert resolve_count("5%", 100, "views") == 5
+    assert resolve_count("5%", 10, "views") == 1  # max(1, round(0.5)) with round-half-even -> 1
+    assert resolve_count("3%", 112, "lights") == 3
+    assert resolve_count("7", 5, "views") == 5
+    assert resolve_count("all", 9, "views") == 9
+    for bad in ("0", "-1", "x%", "150%", "abc"):
+        with pytest.raises(ValueError, match="views"):
+            resolve_count(bad, 10, "views")
+
+
+def test_farthest_point_second_pick_is_the_antipode():
+    dirs = torch.nn.functional.normalize(torch.randn(50, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    order = farthest_point_order(dirs, 5, torch.Generator().manual_seed(3))
+    assert len(set(order)) == 5
+    assert order[1] == int(torch.argmax((dirs - dirs[order[0]]).norm(dim=-1)))
+    # each pick maximises the distance to the set chosen before it
+    for k in range(2, 5):
+        chosen = dirs[order[:k]]
+        gaps = torch.cdist(dirs, chosen).min(dim=1).values
+        assert gaps[order[k]] == pytest.approx(float(gaps.max()))
+
+
+def test_fps_spreads_better_than_random(lattice):
+    ds = OLATDataset(lattice)
+    dirs = directions_from(ds.camera_centers, ds.bounds.center)
+    fps = select_regime(ds, "views=5,lights=all", seed=0).views
+    fps_gap = torch.pdist(dirs[fps]).min()
+    random_gaps = [torch.pdist(dirs[torch.randperm(20, generator=torch.Generator().manual_seed(s))[:5]]).min()
+                   for s in range(20)]
+    assert fps_gap >= torch.stack(random_gaps).median()
+
+
+@pytest.mark.parametrize("spec,views,lights,images", [
+    ("all", 20, 12, 240),
+    ("views=10%,lights=25%", 2, 3, 6),
+    ("views=5,lights=6", 5, 6, 30),
+    ("views=all,lights=1", 20, 1, 20),
+])
+def test_regime_counts(lattice, spec, views, lights, images):
+    selection = select_regime(OLATDataset(lattice), spec, seed=1)
+    assert (len(selection.views), len(selection.lights), len(selection.observations)) == (views, lights, images)
+
+
+def test_all_views_one_light_spreads_lights(lattice):
+    ds = OLATDataset(lattice)
+    selection = select_regime(ds, "all-views-1-light", seed=2)
+    chosen = [ds.observations[i] for i in selection.observations]
+    assert sorted(o.view for o in chosen) == list(range(20))
+    counts = torch.bincount(torch.tensor([o.light for o in chosen]), minlength=12)
+    assert int(counts.max()) - int(counts.min()) <= 1
+
+
+def test_images_regime_spreads_jointly(lattice):
+    ds = OLATDataset(lattice)
+    selection = select_regime(ds, "images=10", seed=0)
+    assert len(selection.observations) == 10
+    assert len(selection.views) >= 5 and len(selection.lights) >= 5
+
+
+def test_only_existing_observations_are_used(lattice):
+    ds = OLATDataset(lattice)
+    sparse = ds.subset([i for i, o in enumerate(ds.observations) if (o.view + o.light) % 2 == 0])
+    selection = select_regime(sparse, "views=all,lights=all", seed=0)
+    assert len(selection.observations) == len(sparse)
+    selection = select_regime(sparse, "all-views-1-light", seed=0)
+    assert all((sparse.observations[i].view + sparse.observations[i].light) % 2 == 0
+               for i in selection.observations)
+
+
+def test_determinism_and_bad_specs(lattice):
+    ds = OLATDataset(lattice)
+    assert select_regime(ds, "views=25%,lights=25%", 4) == select_regime(ds, "views=25%,lights=25%", 4)
+    assert select_regime(ds, "views=25%,lights=25%", 4) != select_regime(ds, "views=25%,lights=25%", 5)
+    for bad in ("views=5", "lights=2,views=2,images=3", "foo", "views=5,light=2"):
+        with pytest.raises(ValueError, match="regime"):
+            select_regime(ds, bad)
+
+
+def test_cli_regimes_and_info_json(lattice, capsys):
+    main(["regimes", "--data", str(lattice), "--regime", "views=5%,lights=5%", "--seed", "3", "--json"])
+    first = json.loads(capsys.readouterr().out)
+    main(["regimes", "--data", str(lattice), "--regime", "views=5%,lights=5%", "--seed", "3", "--json"])
+    assert json.loads(capsys.readouterr().out) == first
+    assert first["images"] == len(first["observations"]) == 1
+    main(["info", "--data", str(lattice), "--json"])
+    summary = json.loads(capsys.readouterr().out)
+    assert (summary["views"], summary["lights"], summary["images"], summary["width"], summary["height"]) == (
+        20, 12, 240, 8, 8)
+
+
+def test_cli_reports_bad_input_without_traceback(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["info", "--data", str(tmp_path / "nope")])
+    assert exit_info.value.code == 2
+    assert "data folder not found" in capsys.readouterr().err
