@@ -1,0 +1,132 @@
+"""Per-Gaussian subsurface-scattering residual MLP (SSS-3DGS, method.md section 2)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+
+def positional_encoding(x: Tensor, num_freqs: int) -> Tensor:
+    """NeRF positional encoding ``[x, sin(2^k pi x), cos(2^k pi x)]_{k<F}``. ``[..., D] -> [..., D(1 + 2F)]``.
+
+    Layout: the raw input first, then for each frequency ``k`` the sines of all ``D`` components followed
+    by their cosines. Inputs are expected in scene units normalised to roughly ``[-1, 1]``.
+    """
+    if num_freqs < 0:
+        raise ValueError(f"num_freqs must be >= 0, got {num_freqs}")
+    freqs = math.pi * 2.0 ** torch.arange(num_freqs, dtype=x.dtype, device=x.device)
+    angles = (x.unsqueeze(-2) * freqs.unsqueeze(-1)).flatten(-2)
+    per_freq = torch.stack([angles.sin(), angles.cos()], dim=-2)
+    per_freq = per_freq.unflatten(-1, (num_freqs, x.shape[-1])).transpose(-3, -2).flatten(-3)
+    return torch.cat([x, per_freq], dim=-1)
+
+
+@dataclass
+class SSSMLPConfig:
+    """Architecture of :class:`SSSResidualMLP`.
+
+    ``incident_bias_init`` is the initial bias of the ``L_in`` output so that the incident light starts
+    near 1 (unoccluded, the ReLU active) instead of at a dead zero.
+    """
+
+    width: int = 32
+    num_hidden_layers: int = 3
+    num_freqs: int = 4
+    negative_slope: float = 0.01
+    incident_bias_init: float = 1.0
+
+
+@dataclass
+class SSSOutput:
+    """MLP outputs per Gaussian (and per camera/light when batched).
+
+    ``residual``: subsurface residual radiance ``R`` in ``[0, 1]``, ``[..., N, 3]`` (scaled by the light's
+    RGB intensity at shading time). ``incident``: incident light transport ``L_in >= 0``, ``[..., N, 1]``
+    (one channel shared by R, G, B, as in SSS-3DGS).
+    """
+
+    residual: Tensor
+    incident: Tensor
+
+
+class SSSResidualMLP(nn.Module):
+    """``(PE(x), q, s, w_v, w_l, n, V, d_l) -> (R, L_in)`` with a LeakyReLU trunk and two heads.
+
+    Inputs (leading shape ``[N]`` or ``[B, N]``; per-Gaussian ``[N, ...]`` tensors broadcast against
+    per-camera/light ``[B, N, ...]`` ones): ``positions [..., 3]`` (positionally encoded with
+    ``num_freqs`` frequencies plus the raw value), ``quats [..., 4]`` (normalised here), ``scales [..., 3]``
+    (activated, i.e. ``exp(log_scale)``), ``view_dirs``/``light_dirs``/``normals [..., 3]`` (normalised
+    here), ``visibility [..., 1]`` (towards the light, in ``[0, 1]``), ``light_distance [..., 1]`` (scene
+    units). Heads: ``R = sigmoid(W h)`` (RGB) and ``L_in = relu(W' leaky(W'' h))`` (one channel).
+    """
+
+    def __init__(self, config: SSSMLPConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or SSSMLPConfig()
+        cfg = self.config
+        if cfg.width <= 0 or cfg.num_hidden_layers <= 0:
+            raise ValueError(f"width and num_hidden_layers must be positive, got {cfg}")
+        layers: list[nn.Module] = []
+        in_features = self.input_dim
+        for _ in range(cfg.num_hidden_layers):
+            layers += [nn.Linear(in_features, cfg.width), nn.LeakyReLU(cfg.negative_slope)]
+            in_features = cfg.width
+        self.trunk = nn.Sequential(*layers)
+        self.residual_head = nn.Linear(cfg.width, 3)
+        self.incident_head = nn.Sequential(
+            nn.Linear(cfg.width, cfg.width), nn.LeakyReLU(cfg.negative_slope), nn.Linear(cfg.width, 1)
+        )
+        nn.init.constant_(self.incident_head[-1].bias, cfg.incident_bias_init)
+
+    @property
+    def input_dim(self) -> int:
+        """Width of the concatenated input: ``3 (1 + 2F)`` position + 4 + 3 + 3 + 3 + 3 + 1 + 1."""
+        return 3 * (1 + 2 * self.config.num_freqs) + 4 + 3 + 3 + 3 + 3 + 1 + 1
+
+    def forward(
+        self,
+        positions: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        view_dirs: Tensor,
+        light_dirs: Tensor,
+        normals: Tensor,
+        visibility: Tensor,
+        light_distance: Tensor,
+    ) -> SSSOutput:
+        inputs = {
+            "positions": (positions, 3),
+            "quats": (quats, 4),
+            "scales": (scales, 3),
+            "view_dirs": (view_dirs, 3),
+            "light_dirs": (light_dirs, 3),
+            "normals": (normals, 3),
+            "visibility": (visibility, 1),
+            "light_distance": (light_distance, 1),
+        }
+        for name, (tensor, channels) in inputs.items():
+            if tensor.shape[-1] != channels or tensor.dim() not in (2, 3):
+                raise ValueError(
+                    f"{name} must have shape [N, {channels}] or [B, N, {channels}], got {tuple(tensor.shape)}"
+                )
+        lead = torch.broadcast_shapes(*(tensor.shape[:-1] for tensor, _ in inputs.values()))
+        features = [
+            positional_encoding(positions, self.config.num_freqs),
+            F.normalize(quats, dim=-1),
+            scales,
+            F.normalize(view_dirs, dim=-1),
+            F.normalize(light_dirs, dim=-1),
+            F.normalize(normals, dim=-1),
+            visibility,
+            light_distance,
+        ]
+        x = torch.cat([f.expand(*lead, f.shape[-1]) for f in features], dim=-1)
+        hidden = self.trunk(x)
+        return SSSOutput(
+            residual=torch.sigmoid(self.residual_head(hidden)),
+            incident=F.relu(self.incident_head(hidden)),
+        )
