@@ -1,0 +1,332 @@
+"""Tests of diamond_sss.losses.multiview on constructed scenes with known answers."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from diamond_sss.data.conventions import (
+    camera_centers,
+    intrinsics_from_fov,
+    look_at_opengl_c2w,
+    opengl_c2w_to_opencv_w2c,
+    pixel_grid,
+    project_points,
+    unproject_pixels,
+)
+from diamond_sss.losses import (
+    MultiViewConfig,
+    multiview_losses,
+    multiview_losses_batched,
+    sample_foreground_pixels,
+    sample_view_pairs,
+)
+
+SIZE = 32
+FOV = math.radians(60.0)
+NEAR, FAR = 1.0, 5.0
+SPAN = FAR - NEAR
+
+
+def camera(eye, target, size: int = SIZE) -> tuple[torch.Tensor, torch.Tensor]:
+    """OpenCV ``w2c`` and ``K`` (float64) of a camera at ``eye`` looking at ``target``."""
+    c2w = look_at_opengl_c2w(torch.tensor(eye, dtype=torch.float64), torch.tensor(target, dtype=torch.float64))
+    return opengl_c2w_to_opencv_w2c(c2w), intrinsics_from_fov(FOV, size, size).to(torch.float64)
+
+
+def ground_plane_depth(w2c: torch.Tensor, K: torch.Tensor, size: int = SIZE) -> torch.Tensor:
+    """Analytic camera-space depth of the plane ``z = 0``: ``D = -C_z / w_z``, ``w`` the ray at unit depth."""
+    uv = pixel_grid(size, size).to(torch.float64).reshape(-1, 2)
+    center = camera_centers(w2c)
+    rays = unproject_pixels(uv, torch.ones(uv.shape[0], dtype=torch.float64), w2c, K) - center
+    return (-center[2] / rays[:, 2]).reshape(size, size)
+
+
+def all_pixels(size: int = SIZE) -> torch.Tensor:
+    return pixel_grid(size, size).to(torch.float64).reshape(-1, 2)
+
+
+def ones(size: int = SIZE) -> torch.Tensor:
+    return torch.ones(size, size, dtype=torch.float64)
+
+
+def run(src, tgt, src_depth, tgt_depth, cfg=None, uv=None, src_alpha=None, tgt_alpha=None, sil=None):
+    (src_w2c, src_K), (tgt_w2c, tgt_K) = src, tgt
+    return multiview_losses(
+        src_depth,
+        ones(src_depth.shape[0]) if src_alpha is None else src_alpha,
+        all_pixels(src_depth.shape[0]) if uv is None else uv,
+        src_w2c,
+        src_K,
+        tgt_depth,
+        ones(tgt_depth.shape[0]) if tgt_alpha is None else tgt_alpha,
+        ones(tgt_depth.shape[0]) if sil is None else sil,
+        tgt_w2c,
+        tgt_K,
+        NEAR,
+        FAR,
+        cfg or MultiViewConfig(),
+    )
+
+
+# ----------------------------------------------------------------------------- known answers on a plane
+
+
+def test_consistent_tilted_views_give_zero_loss():
+    src = camera((0.3, -0.2, 3.0), (0.0, 0.0, 0.0))
+    tgt = camera((1.0, 0.6, 2.8), (0.1, 0.0, 0.0))
+    terms = run(src, tgt, ground_plane_depth(*src), ground_plane_depth(*tgt))
+    assert terms.n_silhouette > 0.8 * SIZE * SIZE and terms.n_depth == terms.n_silhouette
+    assert terms.silhouette.item() == pytest.approx(0.0, abs=1e-12)
+    # Bilinear interpolation of the (projective, not bilinear) plane depth is the only error.
+    assert terms.depth.item() < 1e-4
+
+
+@pytest.mark.parametrize("charbonnier_eps", [None, 0.01])
+def test_depth_offset_gives_closed_form_normalised_error(charbonnier_eps):
+    # Two fronto-parallel cameras translated along the plane: depth is 2 everywhere in both views,
+    # and a source offset delta moves X to depth 2 + delta in the target as well.
+    src = camera((0.0, 0.0, 2.0), (0.0, 0.0, 0.0))
+    tgt = camera((0.3, 0.0, 2.0), (0.3, 0.0, 0.0))
+    cfg = MultiViewConfig(occlusion_tol=1.0, charbonnier_eps=charbonnier_eps)
+    for delta in (-0.4, -0.1, 0.0, 0.1, 0.3):
+        terms = run(src, tgt, 2.0 * ones() + delta, 2.0 * ones(), cfg)
+        d = abs(delta) / SPAN
+        expected = d if charbonnier_eps is None else math.sqrt(d * d + charbonnier_eps**2) - charbonnier_eps
+        assert terms.n_depth > 0
+        assert terms.depth.item() == pytest.approx(expected, abs=1e-9)
+
+
+def test_depth_loss_grows_monotonically_with_offset_on_tilted_views():
+    src = camera((0.3, -0.2, 3.0), (0.0, 0.0, 0.0))
+    tgt = camera((1.0, 0.6, 2.8), (0.1, 0.0, 0.0))
+    cfg = MultiViewConfig(occlusion_tol=1.0)
+    base_src, base_tgt = ground_plane_depth(*src), ground_plane_depth(*tgt)
+    for sign in (-1.0, 1.0):
+        losses = [run(src, tgt, base_src + sign * delta, base_tgt, cfg).depth.item() for delta in (0.0, 0.05, 0.1, 0.2)]
+        assert all(a < b for a, b in zip(losses, losses[1:])), losses
+
+
+# ----------------------------------------------------------------------------- filters
+
+
+def test_each_filter_removes_exactly_the_constructed_correspondences():
+    size = 16
+    view = camera((0.0, 0.0, 2.0), (0.0, 0.0, 0.0), size)  # target == source: x' == x exactly
+    src_depth = 2.0 * ones(size)
+    src_alpha = ones(size)
+    src_depth[0, 0] = 0.0
+    src_depth[0, 1] = float("nan")
+    src_depth[0, 2] = float("inf")
+    src_alpha[0, 3] = 0.1
+    tgt_depth = 2.0 * ones(size)
+    tgt_alpha = ones(size)
+    tgt_depth[5, 5] = float("nan")
+    tgt_depth[5, 7] = -1.0
+    tgt_alpha[5, 9] = 0.0
+    sil = ones(size)
+    sil[8, 8] = 0.2  # outside the silhouette (tolerance 0.5): dropped from the depth term only
+    tgt_depth[10, 10] = 2.0 - 0.5  # z_ij behind D_j by 0.125 > occlusion_tol = 0.02: occluded
+    tgt_depth[10, 12] = 2.0 - 0.04  # behind by 0.01 <= tol: kept, residual 0.01
+    tgt_depth[12, 12] = 2.0 + 0.5  # in front (free-space violation): kept, residual 0.125
+    src_depth.requires_grad_(True)
+    tgt_depth.requires_grad_(True)
+    cfg = MultiViewConfig(sil_threshold=0.5, occlusion_tol=0.02, alpha_threshold=0.5)
+    terms = run(view, view, src_depth, tgt_depth, cfg, src_alpha=src_alpha, tgt_alpha=tgt_alpha, sil=sil)
+    n_valid_source = size * size - 4
+    assert terms.n_silhouette.item() == n_valid_source
+    assert terms.silhouette.item() == pytest.approx(0.8 / n_valid_source, abs=1e-9)
+    assert terms.n_depth.item() == n_valid_source - 3 - 1 - 1
+    assert terms.depth.item() == pytest.approx((0.01 + 0.125) / terms.n_depth.item(), abs=1e-9)
+    # Without the occlusion filter the invalid target depths are still dropped, the occluded point is not.
+    no_occlusion = MultiViewConfig(sil_threshold=0.5, occlusion_tol=1.0, alpha_threshold=0.5)
+    kept = run(view, view, src_depth, tgt_depth, no_occlusion, src_alpha=src_alpha, tgt_alpha=tgt_alpha, sil=sil)
+    assert kept.n_depth.item() == n_valid_source - 3 - 1
+    assert kept.depth.item() == pytest.approx((0.125 + 0.01 + 0.125) / kept.n_depth.item(), abs=1e-9)
+    (terms.silhouette + terms.depth).backward()
+    assert torch.isfinite(src_depth.grad).all() and torch.isfinite(tgt_depth.grad).all()
+    assert src_depth.grad[0, :4].abs().sum() == 0 and tgt_depth.grad[10, 10] == 0
+    # The depth term reaches the target depth map (D_j is not detached).
+    assert tgt_depth.grad[10, 12] != 0 and tgt_depth.grad[12, 12] != 0
+
+
+def test_points_outside_the_target_image_are_dropped():
+    src = camera((0.0, 0.0, 2.0), (0.0, 0.0, 0.0))
+    tgt = camera((1.5, 0.0, 2.0), (1.5, 0.0, 0.0))
+    fx = float(src[1][0, 0])
+    # X = 2 (u - 16) / fx in the source; u' = fx (X - 1.5) / 2 + 16 must lie in [0, 32).
+    columns = torch.arange(SIZE, dtype=torch.float64) + 0.5
+    u_target = fx * (2.0 * (columns - SIZE / 2) / fx - 1.5) / 2.0 + SIZE / 2
+    inside_columns = int(((u_target >= 0) & (u_target < SIZE)).sum())
+    assert 0 < inside_columns < SIZE
+    terms = run(src, tgt, 2.0 * ones(), 2.0 * ones())
+    assert terms.n_silhouette.item() == inside_columns * SIZE
+    assert terms.n_depth.item() == inside_columns * SIZE
+    assert terms.silhouette.item() == 0.0 and terms.depth.item() == pytest.approx(0.0, abs=1e-12)
+
+
+def test_points_at_or_before_the_near_plane_are_dropped():
+    view = camera((0.0, 0.0, 2.0), (0.0, 0.0, 0.0))
+    src_depth = 2.0 * ones()
+    src_depth[:4] = 0.8  # in front of near = 1
+    terms = run(view, view, src_depth, 2.0 * ones())
+    assert terms.n_silhouette.item() == (SIZE - 4) * SIZE
+    assert terms.n_depth.item() == (SIZE - 4) * SIZE
+
+
+# ----------------------------------------------------------------------------- normalisation and edge cases
+
+
+def test_duplicated_correspondences_leave_the_loss_unchanged():
+    src = camera((0.3, -0.2, 3.0), (0.0, 0.0, 0.0))
+    tgt = camera((1.0, 0.6, 2.8), (0.1, 0.0, 0.0))
+    src_depth = ground_plane_depth(*src) + 0.1
+    tgt_depth = ground_plane_depth(*tgt)
+    sil = torch.linspace(0.0, 1.0, SIZE, dtype=torch.float64).expand(SIZE, SIZE).contiguous()
+    mask = torch.zeros(SIZE, SIZE)
+    mask[8:24, 8:24] = 1.0
+    uv = sample_foreground_pixels(mask, 50, torch.Generator().manual_seed(0)).to(torch.float64)
+    cfg = MultiViewConfig(occlusion_tol=1.0, sil_threshold=0.3)
+    once = run(src, tgt, src_depth, tgt_depth, cfg, uv=uv, sil=sil)
+    twice = run(src, tgt, src_depth, tgt_depth, cfg, uv=torch.cat([uv, uv]), sil=sil)
+    assert once.silhouette > 0 and once.depth > 0
+    assert twice.n_silhouette == 2 * once.n_silhouette and twice.n_depth == 2 * once.n_depth
+    assert twice.silhouette.item() == pytest.approx(once.silhouette.item(), rel=1e-12)
+    assert twice.depth.item() == pytest.approx(once.depth.item(), rel=1e-12)
+    # The batched form normalises by the counts over all pairs, and padding entries are ignored.
+    stack = lambda x: torch.stack([x, x])  # noqa: E731
+    padded_uv = torch.stack([uv, torch.cat([uv[:30], torch.full_like(uv[30:], float("nan"))])])
+    uv_valid = torch.ones(2, uv.shape[0], dtype=torch.bool)
+    uv_valid[1, 30:] = False
+    batched = multiview_losses_batched(
+        stack(src_depth), stack(ones()), padded_uv, stack(src[0]), stack(src[1]),
+        stack(tgt_depth), stack(ones()), stack(sil), stack(tgt[0]), stack(tgt[1]),
+        NEAR, FAR, cfg, src_uv_valid=uv_valid,
+    )
+    partial = run(src, tgt, src_depth, tgt_depth, cfg, uv=uv[:30], sil=sil)
+    expected_n = once.n_silhouette + partial.n_silhouette
+    assert batched.n_silhouette == expected_n
+    expected = (once.silhouette * once.n_silhouette + partial.silhouette * partial.n_silhouette) / expected_n
+    assert batched.silhouette.item() == pytest.approx(expected.item(), rel=1e-10)
+
+
+def test_empty_mask_gives_exact_zero_and_backward_works():
+    view = camera((0.0, 0.0, 2.0), (0.0, 0.0, 0.0))
+    uv = sample_foreground_pixels(torch.zeros(SIZE, SIZE), 64, torch.Generator().manual_seed(0))
+    assert uv.shape == (0, 2)
+    src_depth = (2.0 * ones()).requires_grad_(True)
+    tgt_depth = (2.0 * ones()).requires_grad_(True)
+    terms = run(view, view, src_depth, tgt_depth, uv=uv.to(torch.float64))
+    total = terms.silhouette + terms.depth
+    assert total.item() == 0.0 and not torch.isnan(total)
+    assert terms.n_silhouette.item() == 0 and terms.n_depth.item() == 0
+    total.backward()
+    assert torch.equal(src_depth.grad, torch.zeros_like(src_depth))
+    # Nothing valid at all (transparent source) is the same.
+    src_depth.grad = None
+    terms = run(view, view, src_depth, tgt_depth, src_alpha=torch.zeros(SIZE, SIZE, dtype=torch.float64))
+    (terms.silhouette + terms.depth).backward()
+    assert terms.silhouette.item() == 0.0 and terms.depth.item() == 0.0
+    assert torch.isfinite(src_depth.grad).all()
+
+
+# ----------------------------------------------------------------------------- gradients
+
+
+def test_silhouette_gradient_pulls_reprojection_back_inside():
+    src = camera((0.0, 0.0, 2.0), (0.0, 0.0, 0.0))
+    tgt = camera((2.0, 0.0, 2.0), (0.0, 0.0, 0.0))
+    # Target silhouette: a soft disc around the projection of the origin.
+    grid = pixel_grid(SIZE, SIZE).to(torch.float64)
+    centre, _ = project_points(torch.zeros(1, 3, dtype=torch.float64), *tgt)
+    sil = torch.exp(-((grid - centre[0]) ** 2).sum(-1) / (2 * 4.0**2))
+    # The object surface is the plane z = 0 (true source depth 2); the rendered depth is 0.6 too far,
+    # so X lands 0.6 below the plane and reprojects off the disc.
+    uv = torch.tensor([[15.5, 15.5], [16.5, 16.5], [17.5, 15.5]], dtype=torch.float64)
+    src_depth = (2.6 * ones()).requires_grad_(True)
+    terms = run(src, tgt, src_depth, 2.0 * ones(), uv=uv, sil=sil)
+    assert terms.n_silhouette.item() == 3 and terms.silhouette.item() > 0.1
+    terms.silhouette.backward()
+    rows, cols = (uv[:, 1] - 0.5).long(), (uv[:, 0] - 0.5).long()
+    assert (src_depth.grad[rows, cols] > 0).all()  # less depth -> closer to the disc
+    with torch.no_grad():
+        stepped = src_depth - 0.5 * src_depth.grad / src_depth.grad.abs().max()
+    after = run(src, tgt, stepped, 2.0 * ones(), uv=uv, sil=sil)
+    assert after.silhouette.item() < terms.silhouette.item()
+
+
+def test_gradcheck_both_terms_wrt_source_and_target_depth():
+    size = 12
+    src = camera((0.3, -0.2, 3.0), (0.0, 0.0, 0.0), size)
+    tgt = camera((1.0, 0.6, 2.8), (0.1, 0.0, 0.0), size)
+    gen = torch.Generator().manual_seed(1)
+    src_depth = ground_plane_depth(*src, size=size) + 0.05 * torch.rand(size, size, generator=gen, dtype=torch.float64)
+    tgt_depth = ground_plane_depth(*tgt, size=size) + 0.05 * torch.rand(size, size, generator=gen, dtype=torch.float64)
+    grid = pixel_grid(size, size).to(torch.float64)
+    sil = torch.sigmoid(0.4 * (grid[..., 0] - 3.0))
+    uv = all_pixels(size)[::5]
+    cfg = MultiViewConfig(occlusion_tol=1.0, sil_threshold=0.0, charbonnier_eps=1e-3)
+
+    def objective(d_src, d_tgt):
+        terms = run(src, tgt, d_src, d_tgt, cfg, uv=uv, sil=sil)
+        return terms.silhouette + terms.depth
+
+    inputs = (src_depth.requires_grad_(True), tgt_depth.requires_grad_(True))
+    assert torch.autograd.gradcheck(objective, inputs, atol=1e-6)
+    objective(*inputs).backward()
+    assert src_depth.grad.abs().sum() > 0 and tgt_depth.grad.abs().sum() > 0
+
+
+# ----------------------------------------------------------------------------- sampling
+
+
+def ring_centres(num: int = 8) -> torch.Tensor:
+    angles = torch.arange(num, dtype=torch.float64) * 2 * math.pi / num
+    return torch.stack([torch.cos(angles), torch.sin(angles), torch.zeros(num, dtype=torch.float64)], dim=-1)
+
+
+def test_sample_view_pairs_nearest_k_and_random():
+    centres = ring_centres(8)
+    pairs = sample_view_pairs(centres, 200, "nearest-k", 2, torch.Generator().manual_seed(0))
+    assert pairs.shape == (200, 2) and pairs.dtype == torch.int64
+    step = (pairs[:, 1] - pairs[:, 0]) % 8
+    assert set(step.tolist()) == {1, 7}  # the two ring neighbours, never the source itself
+    again = sample_view_pairs(centres, 200, "nearest-k", 2, torch.Generator().manual_seed(0))
+    assert torch.equal(pairs, again)
+    random_pairs = sample_view_pairs(centres, 400, "random", 2, torch.Generator().manual_seed(1))
+    assert (random_pairs[:, 0] != random_pairs[:, 1]).all()
+    assert len(set(((random_pairs[:, 1] - random_pairs[:, 0]) % 8).tolist())) == 7
+    restricted = sample_view_pairs(centres, 100, "random", 1, torch.Generator().manual_seed(2), torch.tensor([2, 5]))
+    assert set(restricted[:, 1].tolist()) <= {2, 5}
+    assert (restricted[:, 0] != restricted[:, 1]).all()
+    with pytest.raises(ValueError, match="no candidate target"):
+        sample_view_pairs(centres[:1], 1, "random", 1, torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="mode"):
+        sample_view_pairs(centres, 1, "farthest", 1)
+
+
+def test_sample_foreground_pixels():
+    mask = torch.zeros(10, 12)
+    mask[2:5, 3:7] = 1.0
+    uv = sample_foreground_pixels(mask, 5, torch.Generator().manual_seed(0))
+    assert uv.shape == (5, 2)
+    assert torch.equal(uv - uv.floor(), torch.full_like(uv, 0.5))
+    rows, cols = (uv[:, 1] - 0.5).long(), (uv[:, 0] - 0.5).long()
+    assert (mask[rows, cols] == 1).all()
+    assert len({(r, c) for r, c in zip(rows.tolist(), cols.tolist())}) == 5
+    assert torch.equal(uv, sample_foreground_pixels(mask, 5, torch.Generator().manual_seed(0)))
+    assert sample_foreground_pixels(mask, 100).shape == (12, 2)
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="target_mode"):
+        MultiViewConfig(target_mode="nearest")
+    with pytest.raises(ValueError, match="charbonnier_eps"):
+        MultiViewConfig(charbonnier_eps=0.0)
+    view = camera((0.0, 0.0, 2.0), (0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="far > near"):
+        multiview_losses(
+            ones(), ones(), all_pixels(), *view, ones(), ones(), ones(), *view, 2.0, 1.0, MultiViewConfig()
+        )
