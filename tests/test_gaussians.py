@@ -36,7 +36,9 @@ from diamond_sss.gaussians import (
 
 SPHERE_CENTER = torch.tensor([0.1, -0.2, 0.15])
 SPHERE_RADIUS = 0.5
+BOUNDS_CENTER = SPHERE_CENTER + torch.tensor([0.2, -0.1, 0.05])  # off the sphere: breaks grid symmetry
 BOUNDS_RADIUS = 1.0
+LOOK_AT = SPHERE_CENTER + torch.tensor([0.12, -0.08, 0.05])
 AXES = [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]
 
 
@@ -46,20 +48,21 @@ def _random_model(num: int = 50, seed: int = 0) -> GaussianModel:
     return GaussianModel(raw)
 
 
-def _sphere_rig(directions, distance: float = 2.0, size: int = 48):
-    """Cameras at ``distance`` from the sphere centre looking at it, with exact silhouettes as masks.
+def _sphere_rig(directions, distance: float = 2.0, size: int = 48, fov_factor: float = 1.6):
+    """Cameras at ``distance`` from the sphere centre looking at ``LOOK_AT`` (off-centre, so that the
+    silhouettes are off-centre ellipses), with exact silhouettes as masks.
 
     A pixel is foreground when its ray passes within ``SPHERE_RADIUS`` of the centre: the angle between
     the ray and the direction to the centre is at most ``asin(r / d)``. The field of view frames the
-    whole bounding sphere.
+    whole bounding sphere unless ``fov_factor`` is small.
     """
-    fov = 2.0 * math.asin(1.2 * BOUNDS_RADIUS / distance)
+    fov = 2.0 * math.asin(fov_factor * BOUNDS_RADIUS / distance)
     K = intrinsics_from_fov(fov, size, size)
     masks, w2cs = [], []
     for direction in directions:
         direction = torch.tensor(direction, dtype=torch.float64)
         eye = SPHERE_CENTER.double() + distance * direction / direction.norm()
-        w2c = opengl_c2w_to_opencv_w2c(look_at_opengl_c2w(eye, SPHERE_CENTER.double())).float()
+        w2c = opengl_c2w_to_opencv_w2c(look_at_opengl_c2w(eye, LOOK_AT.double())).float()
         rays = pixel_ray_directions(w2c, K, size, size)
         to_center = SPHERE_CENTER - camera_centers(w2c)
         cos_limit = math.sqrt(1.0 - (SPHERE_RADIUS / float(to_center.norm())) ** 2)
@@ -257,7 +260,7 @@ def _assert_contains_sphere(hull) -> None:
 def test_visual_hull_of_a_sphere_from_six_views():
     masks, w2c, K = _sphere_rig(AXES)
     resolution = 40
-    hull = carve_visual_hull(masks, w2c, K, SPHERE_CENTER, BOUNDS_RADIUS, resolution=resolution)
+    hull = carve_visual_hull(masks, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=resolution)
     _assert_contains_sphere(hull)
     voxel = hull.voxel_size
     num_surface = int(hull.surface().sum())
@@ -276,8 +279,9 @@ def test_visual_hull_of_a_sphere_from_six_views():
     # The hull of 6 perspective views exceeds the sphere by under 5% of r (the corners between the
     # silhouette cones); carving at voxel centres and the jitter add up to ~1.4 voxels.
     assert float(radii.max()) <= SPHERE_RADIUS + 2.0 * voxel
-    # Surface voxels come first: the first num_surface points hug the surface.
-    assert float((radii[:num_surface] - SPHERE_RADIUS).abs().max()) <= 2.0 * voxel
+    # Surface voxels come first: the first num_surface points hug the surface (a surface voxel's centre
+    # is within one voxel of the hull's boundary, plus the jitter and the hull's excess).
+    assert float((radii[:num_surface] - SPHERE_RADIUS).abs().max()) <= 2.5 * voxel
     # The points cover the sphere: every point of its surface has a sampled point within ~1 voxel.
     surface = SPHERE_CENTER + SPHERE_RADIUS * _fibonacci_directions(400)
     assert float(torch.cdist(surface, points).min(dim=1).values.max()) <= math.sqrt(3.0) * voxel
@@ -290,16 +294,18 @@ def test_visual_hull_of_a_sphere_from_six_views():
 
 def test_visual_hull_with_two_views_still_contains_the_sphere():
     masks, w2c, K = _sphere_rig([(1, 0.2, 0.1), (-0.3, 1, 0.2)])
-    hull = carve_visual_hull(masks, w2c, K, SPHERE_CENTER, BOUNDS_RADIUS, resolution=32)
+    hull = carve_visual_hull(masks, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=32)
     _assert_contains_sphere(hull)
-    points = visual_hull_points(masks, w2c, K, SPHERE_CENTER, BOUNDS_RADIUS, resolution=32, num_points=500)
+    points = visual_hull_points(masks, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=32, num_points=500)
     assert points.shape == (500, 3)
-    assert float((points - SPHERE_CENTER).norm(dim=-1).max()) <= BOUNDS_RADIUS + hull.voxel_size
+    assert float((points - BOUNDS_CENTER).norm(dim=-1).max()) <= BOUNDS_RADIUS + hull.voxel_size
 
 
 def test_views_that_do_not_see_a_voxel_do_not_carve_it():
     masks, w2c, K = _sphere_rig(AXES)
-    reference = carve_visual_hull(masks, w2c, K, SPHERE_CENTER, BOUNDS_RADIUS, resolution=24)
+    reference = carve_visual_hull(
+        masks, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=24, min_views_fraction=0.0
+    )
     # A seventh camera that looks away from the object with an empty mask carves nothing.
     away = opengl_c2w_to_opencv_w2c(
         look_at_opengl_c2w(torch.tensor([3.0, 0.0, 0.0]), torch.tensor([6.0, 0.0, 0.0]))
@@ -308,22 +314,44 @@ def test_views_that_do_not_see_a_voxel_do_not_carve_it():
         torch.cat([masks, torch.zeros_like(masks[:1])]),
         torch.cat([w2c, away[None]]),
         torch.cat([K, K[:1]]),
-        SPHERE_CENTER,
+        BOUNDS_CENTER,
         BOUNDS_RADIUS,
         resolution=24,
-        min_views_fraction=0.5,
+        min_views_fraction=0.0,
     )
     assert torch.equal(hull.occupied, reference.occupied)
 
 
+def test_voxels_seen_by_too_few_views_are_dropped():
+    # Narrow fields of view: most of the bounding sphere is outside both images.
+    masks, w2c, K = _sphere_rig([(1, 0.2, 0.1), (-0.3, 1, 0.2)], fov_factor=0.4)
+    hull = carve_visual_hull(
+        masks, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=24, min_views_fraction=0.5
+    )
+    points = hull.centers(hull.occupied.nonzero())
+    assert points.shape[0] > 0
+    height, width = masks.shape[1:]
+    seen_by = torch.zeros(points.shape[0], dtype=torch.int64)
+    for view in range(2):
+        uv, z = project_points(points, w2c[view], K[view])
+        inside = (z > 0) & (uv >= 0).all(-1) & (uv[:, 0] <= width) & (uv[:, 1] <= height)
+        seen_by += inside.long()
+    assert int(seen_by.min()) >= 1
+    both = carve_visual_hull(
+        masks, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=24, min_views_fraction=1.0
+    )
+    assert int(both.occupied.sum()) < int(hull.occupied.sum())
+    assert bool(hull.occupied[both.occupied].all())
+
+
 def test_mask_tolerance_survives_one_bad_mask():
     masks, w2c, K = _sphere_rig(AXES)
-    reference = carve_visual_hull(masks, w2c, K, SPHERE_CENTER, BOUNDS_RADIUS, resolution=24)
+    reference = carve_visual_hull(masks, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=24)
     broken = masks.clone()
     broken[2] = 0.0
-    strict = carve_visual_hull(broken, w2c, K, SPHERE_CENTER, BOUNDS_RADIUS, resolution=24)
+    strict = carve_visual_hull(broken, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=24)
     tolerant = carve_visual_hull(
-        broken, w2c, K, SPHERE_CENTER, BOUNDS_RADIUS, resolution=24, mask_tolerance_views=1
+        broken, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=24, mask_tolerance_views=1
     )
     assert int(strict.occupied.sum()) == 0
     assert bool(tolerant.occupied[reference.occupied].all())
@@ -336,7 +364,7 @@ def test_visual_hull_points_are_deterministic_under_a_seed():
     def sample(seed: int) -> torch.Tensor:
         generator = torch.Generator().manual_seed(seed)
         return visual_hull_points(
-            masks, w2c, K, SPHERE_CENTER, BOUNDS_RADIUS, resolution=24, num_points=300, generator=generator
+            masks, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=24, num_points=300, generator=generator
         )
 
     assert torch.equal(sample(5), sample(5))
@@ -347,12 +375,12 @@ def test_empty_hull_raises_and_initial_points_falls_back(caplog):
     masks, w2c, K = _sphere_rig(AXES[:2])
     empty = torch.zeros_like(masks)
     with pytest.raises(EmptyVisualHullError, match="visual hull is empty"):
-        visual_hull_points(empty, w2c, K, SPHERE_CENTER, BOUNDS_RADIUS, resolution=16)
+        visual_hull_points(empty, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=16)
     generator = torch.Generator().manual_seed(0)
     with caplog.at_level(logging.WARNING, logger="diamond_sss.gaussians.init"):
         result = initial_points(
             num_points=200,
-            bounds_center=SPHERE_CENTER,
+            bounds_center=BOUNDS_CENTER,
             bounds_radius=BOUNDS_RADIUS,
             masks=empty,
             w2c=w2c,
@@ -363,7 +391,7 @@ def test_empty_hull_raises_and_initial_points_falls_back(caplog):
     assert result.source == "random" and result.points.shape == (200, 3)
     assert "visual hull is empty" in caplog.text
     hull = initial_points(
-        num_points=200, bounds_center=SPHERE_CENTER, bounds_radius=BOUNDS_RADIUS, masks=masks, w2c=w2c, K=K
+        num_points=200, bounds_center=BOUNDS_CENTER, bounds_radius=BOUNDS_RADIUS, masks=masks, w2c=w2c, K=K
     )
     assert hull.source == "visual_hull" and hull.points.shape == (200, 3)
 

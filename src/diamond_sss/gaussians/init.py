@@ -41,7 +41,7 @@ class InitialPoints:
 
 
 def load_points3d_ply(path: str | Path) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """Read a ``points3d.ply`` point cloud: ``points [N,3]``, ``colors [N,3] | None``, ``normals [N,3] | None``.
+    """Read a ``points3d.ply``: ``points [N,3]``, ``colors [N,3] | None``, ``normals [N,3] | None``.
 
     Needs a ``vertex`` element with ``x, y, z``. Colours (``red, green, blue``: 8-bit, 16-bit or
     float in ``[0,1]``) are sRGB on disk and returned linear (float32, ``[0,1]``). Normals

@@ -210,7 +210,10 @@ class GaussianModel(nn.Module):
 
     @classmethod
     def from_state_tensors(cls, tensors: Mapping[str, Tensor], requires_grad: bool = True) -> GaussianModel:
-        """Inverse of :meth:`state_tensors`; e.g. ``GaussianModel.from_state_tensors(safetensors.torch.load_file(p))``."""
+        """Inverse of :meth:`state_tensors`.
+
+        E.g. ``GaussianModel.from_state_tensors(safetensors.torch.load_file(path))``.
+        """
         return cls(tensors, requires_grad=requires_grad)
 
     def state_tensors(self) -> dict[str, Tensor]:
