@@ -17,7 +17,6 @@ from diamond_sss.data.conventions import (
     pixel_grid,
     unproject_pixels,
 )
-from diamond_sss.losses import lpips as lpips_module
 from diamond_sss.losses import (
     LPIPS,
     base_color_prior_loss,
@@ -37,10 +36,13 @@ from diamond_sss.losses import (
     raytrace_visibility_loss,
     ssim_per_image,
 )
+from diamond_sss.losses import lpips as lpips_module
 from diamond_sss.losses.lpips import LIN_CHANNELS, VGG16_CONVS, expected_shapes
 
 
-def _images(batch: int = 2, size: int = 16, channels: int = 3, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+def _images(
+    batch: int = 2, size: int = 16, channels: int = 3, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
     gen = torch.Generator().manual_seed(seed)
     a = torch.rand(batch, size, size, channels, generator=gen)
     b = torch.rand(batch, size, size, channels, generator=gen)
@@ -226,7 +228,7 @@ def _camera(eye, target, size: int = 16):
 
 
 def _plane_depth(w2c, K, size: int, normal, offset: float) -> torch.Tensor:
-    """Camera-space depth of the plane ``n . X = offset``: ``D = (offset - n . C) / (n . w)``, ``w`` the ray at z=1."""
+    """Depth of the plane ``n . X = offset``: ``D = (offset - n . C) / (n . w)``, ``w`` the ray at z = 1."""
     uv = pixel_grid(size, size).reshape(-1, 2)
     center = camera_centers(w2c)
     rays = unproject_pixels(uv, torch.ones(uv.shape[0]), w2c, K) - center
@@ -264,7 +266,9 @@ def test_normals_from_depth_gradcheck():
     size = 5
     w2c, K = _camera((0.5, 0.2, 3.0), (0.0, 0.0, 0.0), size)
     gen = torch.Generator().manual_seed(4)
-    depth = (3.0 + 0.1 * torch.rand(1, size, size, 1, generator=gen, dtype=torch.float64)).requires_grad_(True)
+    depth = (3.0 + 0.1 * torch.rand(1, size, size, 1, generator=gen, dtype=torch.float64)).requires_grad_(
+        True
+    )
     reference = torch.rand(1, size, size, 3, generator=gen, dtype=torch.float64)
 
     def objective(d):
@@ -369,7 +373,9 @@ def test_convert_official_state_dicts(layout):
         prefix = f"features.{index}" if layout == "torchvision" else f"net.slice{slice_of[index]}.{index}"
         vgg_sd[f"{prefix}.weight"] = torch.randn(c_out, c_in, 3, 3, generator=gen)
         vgg_sd[f"{prefix}.bias"] = torch.randn(c_out, generator=gen)
-    lin_sd = {f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1, generator=gen) for i, c in enumerate(LIN_CHANNELS)}
+    lin_sd = {
+        f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1, generator=gen) for i, c in enumerate(LIN_CHANNELS)
+    }
     converted = convert_lpips_state_dict(vgg_sd, lin_sd)
     assert set(converted) == set(expected_shapes())
     first = "features.14" if layout == "torchvision" else "net.slice3.14"

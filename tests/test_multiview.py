@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -32,7 +33,9 @@ SPAN = FAR - NEAR
 
 def camera(eye, target, size: int = SIZE) -> tuple[torch.Tensor, torch.Tensor]:
     """OpenCV ``w2c`` and ``K`` (float64) of a camera at ``eye`` looking at ``target``."""
-    c2w = look_at_opengl_c2w(torch.tensor(eye, dtype=torch.float64), torch.tensor(target, dtype=torch.float64))
+    c2w = look_at_opengl_c2w(
+        torch.tensor(eye, dtype=torch.float64), torch.tensor(target, dtype=torch.float64)
+    )
     return opengl_c2w_to_opencv_w2c(c2w), intrinsics_from_fov(FOV, size, size).to(torch.float64)
 
 
@@ -42,6 +45,11 @@ def ground_plane_depth(w2c: torch.Tensor, K: torch.Tensor, size: int = SIZE) -> 
     center = camera_centers(w2c)
     rays = unproject_pixels(uv, torch.ones(uv.shape[0], dtype=torch.float64), w2c, K) - center
     return (-center[2] / rays[:, 2]).reshape(size, size)
+
+
+def two(x: torch.Tensor) -> torch.Tensor:
+    """The same view twice, ``[2, ...]``."""
+    return torch.stack([x, x])
 
 
 def all_pixels(size: int = SIZE) -> torch.Tensor:
@@ -105,8 +113,11 @@ def test_depth_loss_grows_monotonically_with_offset_on_tilted_views():
     cfg = MultiViewConfig(occlusion_tol=1.0)
     base_src, base_tgt = ground_plane_depth(*src), ground_plane_depth(*tgt)
     for sign in (-1.0, 1.0):
-        losses = [run(src, tgt, base_src + sign * delta, base_tgt, cfg).depth.item() for delta in (0.0, 0.05, 0.1, 0.2)]
-        assert all(a < b for a, b in zip(losses, losses[1:])), losses
+        losses = [
+            run(src, tgt, base_src + sign * delta, base_tgt, cfg).depth.item()
+            for delta in (0.0, 0.05, 0.1, 0.2)
+        ]
+        assert all(a < b for a, b in itertools.pairwise(losses)), losses
 
 
 # ----------------------------------------------------------------------------- filters
@@ -142,7 +153,9 @@ def test_each_filter_removes_exactly_the_constructed_correspondences():
     assert terms.depth.item() == pytest.approx((0.01 + 0.125) / terms.n_depth.item(), abs=1e-9)
     # Without the occlusion filter the invalid target depths are still dropped, the occluded point is not.
     no_occlusion = MultiViewConfig(sil_threshold=0.5, occlusion_tol=1.0, alpha_threshold=0.5)
-    kept = run(view, view, src_depth, tgt_depth, no_occlusion, src_alpha=src_alpha, tgt_alpha=tgt_alpha, sil=sil)
+    kept = run(
+        view, view, src_depth, tgt_depth, no_occlusion, src_alpha=src_alpha, tgt_alpha=tgt_alpha, sil=sil
+    )
     assert kept.n_depth.item() == n_valid_source - 3 - 1
     assert kept.depth.item() == pytest.approx((0.125 + 0.01 + 0.125) / kept.n_depth.item(), abs=1e-9)
     (terms.silhouette + terms.depth).backward()
@@ -196,14 +209,24 @@ def test_duplicated_correspondences_leave_the_loss_unchanged():
     assert twice.silhouette.item() == pytest.approx(once.silhouette.item(), rel=1e-12)
     assert twice.depth.item() == pytest.approx(once.depth.item(), rel=1e-12)
     # The batched form normalises by the counts over all pairs, and padding entries are ignored.
-    stack = lambda x: torch.stack([x, x])  # noqa: E731
     padded_uv = torch.stack([uv, torch.cat([uv[:30], torch.full_like(uv[30:], float("nan"))])])
     uv_valid = torch.ones(2, uv.shape[0], dtype=torch.bool)
     uv_valid[1, 30:] = False
     batched = multiview_losses_batched(
-        stack(src_depth), stack(ones()), padded_uv, stack(src[0]), stack(src[1]),
-        stack(tgt_depth), stack(ones()), stack(sil), stack(tgt[0]), stack(tgt[1]),
-        NEAR, FAR, cfg, src_uv_valid=uv_valid,
+        two(src_depth),
+        two(ones()),
+        padded_uv,
+        two(src[0]),
+        two(src[1]),
+        two(tgt_depth),
+        two(ones()),
+        two(sil),
+        two(tgt[0]),
+        two(tgt[1]),
+        NEAR,
+        FAR,
+        cfg,
+        src_uv_valid=uv_valid,
     )
     partial = run(src, tgt, src_depth, tgt_depth, cfg, uv=uv[:30], sil=sil)
     expected_n = once.n_silhouette + partial.n_silhouette
@@ -262,8 +285,12 @@ def test_gradcheck_both_terms_wrt_source_and_target_depth():
     src = camera((0.3, -0.2, 3.0), (0.0, 0.0, 0.0), size)
     tgt = camera((1.0, 0.6, 2.8), (0.1, 0.0, 0.0), size)
     gen = torch.Generator().manual_seed(1)
-    src_depth = ground_plane_depth(*src, size=size) + 0.05 * torch.rand(size, size, generator=gen, dtype=torch.float64)
-    tgt_depth = ground_plane_depth(*tgt, size=size) + 0.05 * torch.rand(size, size, generator=gen, dtype=torch.float64)
+    src_depth = ground_plane_depth(*src, size=size) + 0.05 * torch.rand(
+        size, size, generator=gen, dtype=torch.float64
+    )
+    tgt_depth = ground_plane_depth(*tgt, size=size) + 0.05 * torch.rand(
+        size, size, generator=gen, dtype=torch.float64
+    )
     grid = pixel_grid(size, size).to(torch.float64)
     sil = torch.sigmoid(0.4 * (grid[..., 0] - 3.0))
     uv = all_pixels(size)[::5]
@@ -298,7 +325,9 @@ def test_sample_view_pairs_nearest_k_and_random():
     random_pairs = sample_view_pairs(centres, 400, "random", 2, torch.Generator().manual_seed(1))
     assert (random_pairs[:, 0] != random_pairs[:, 1]).all()
     assert len(set(((random_pairs[:, 1] - random_pairs[:, 0]) % 8).tolist())) == 7
-    restricted = sample_view_pairs(centres, 100, "random", 1, torch.Generator().manual_seed(2), torch.tensor([2, 5]))
+    restricted = sample_view_pairs(
+        centres, 100, "random", 1, torch.Generator().manual_seed(2), torch.tensor([2, 5])
+    )
     assert set(restricted[:, 1].tolist()) <= {2, 5}
     assert (restricted[:, 0] != restricted[:, 1]).all()
     with pytest.raises(ValueError, match="no candidate target"):
@@ -330,3 +359,64 @@ def test_config_validation():
         multiview_losses(
             ones(), ones(), all_pixels(), *view, ones(), ones(), ones(), *view, 2.0, 1.0, MultiViewConfig()
         )
+
+
+# ----------------------------------------------------------------------------- with the rasterizer
+
+
+def test_gaussian_outside_target_silhouette_is_pulled_back_inside():
+    rendering = pytest.importorskip("diamond_sss.rendering")
+    src = tuple(x.to(torch.float32) for x in camera((0.0, 0.0, 3.0), (0.0, 0.0, 0.0)))
+    tgt = tuple(x.to(torch.float32) for x in camera((3.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    # Target silhouette: a soft disc around the projection of the origin (where the object is).
+    grid = pixel_grid(SIZE, SIZE)
+    centre, _ = project_points(torch.zeros(1, 3), *tgt)
+    sil = torch.exp(-((grid - centre[0]) ** 2).sum(-1) / (2 * 5.0**2))
+    # One Gaussian on the source's optical axis, 0.8 behind the origin: outside the disc in the target view.
+    mean = torch.tensor([[0.0, 0.0, -0.8]], requires_grad=True)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]])
+    scales = torch.full((1, 3), 0.3)
+    opacities = torch.tensor([0.99])
+    optimizer = torch.optim.SGD([mean], lr=0.3)
+
+    def silhouette_at_projection() -> float:
+        uv, _ = project_points(mean.detach(), *tgt)
+        col, row = int(uv[0, 0]), int(uv[0, 1])
+        return float(sil[row, col]) if 0 <= row < SIZE and 0 <= col < SIZE else 0.0
+
+    before = silhouette_at_projection()
+    losses = []
+    for _ in range(6):
+        out = rendering.rasterize(
+            mean,
+            quats,
+            scales,
+            opacities,
+            torch.ones(1, 1),
+            src[0][None],
+            src[1][None],
+            SIZE,
+            SIZE,
+            backend="cpu",
+        )
+        depth, alpha = out.depth[0, ..., 0], out.alpha[0, ..., 0]
+        uv = sample_foreground_pixels(alpha.detach(), 64, torch.Generator().manual_seed(0))
+        terms = multiview_losses(
+            depth,
+            alpha,
+            uv,
+            *src,
+            torch.full((SIZE, SIZE), 3.0),
+            ones().float(),
+            sil,
+            *tgt,
+            0.5,
+            6.0,
+            MultiViewConfig(),
+        )
+        optimizer.zero_grad()
+        terms.silhouette.backward()
+        optimizer.step()
+        losses.append(terms.silhouette.item())
+    assert before < 0.5 and silhouette_at_projection() > 0.9  # outside, then inside (threshold 0.5)
+    assert losses[-1] < 0.5 * losses[0]

@@ -1,4 +1,7 @@
-"""Training objective of DIAMOND-SSS as pure functions (method.md Sec. 4 and 5; supplement Eq. A.1 - A.7, Sec. D)."""
+"""Training objective of DIAMOND-SSS as pure functions.
+
+method.md Sec. 4 and 5; supplement Eq. A.1 - A.7 and Sec. D.
+"""
 
 from __future__ import annotations
 

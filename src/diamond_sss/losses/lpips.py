@@ -34,11 +34,19 @@ WEIGHTS_ENV_VAR = "DIAMOND_SSS_LPIPS_WEIGHTS"
 
 # (name, in_channels, out_channels, torchvision ``features`` index) of the 13 VGG16 convolutions.
 VGG16_CONVS: tuple[tuple[str, int, int, int], ...] = (
-    ("conv1_1", 3, 64, 0), ("conv1_2", 64, 64, 2),
-    ("conv2_1", 64, 128, 5), ("conv2_2", 128, 128, 7),
-    ("conv3_1", 128, 256, 10), ("conv3_2", 256, 256, 12), ("conv3_3", 256, 256, 14),
-    ("conv4_1", 256, 512, 17), ("conv4_2", 512, 512, 19), ("conv4_3", 512, 512, 21),
-    ("conv5_1", 512, 512, 24), ("conv5_2", 512, 512, 26), ("conv5_3", 512, 512, 28),
+    ("conv1_1", 3, 64, 0),
+    ("conv1_2", 64, 64, 2),
+    ("conv2_1", 64, 128, 5),
+    ("conv2_2", 128, 128, 7),
+    ("conv3_1", 128, 256, 10),
+    ("conv3_2", 256, 256, 12),
+    ("conv3_3", 256, 256, 14),
+    ("conv4_1", 256, 512, 17),
+    ("conv4_2", 512, 512, 19),
+    ("conv4_3", 512, 512, 21),
+    ("conv5_1", 512, 512, 24),
+    ("conv5_2", 512, 512, 26),
+    ("conv5_3", 512, 512, 28),
 )
 # The five stages; each ends at the tapped ReLU (relu1_2 ... relu5_3); stages 2-5 start with a max-pool.
 VGG16_STAGES: tuple[tuple[str, ...], ...] = (
@@ -100,7 +108,8 @@ class LPIPS(nn.Module):
     def forward(self, pred: Tensor, target: Tensor) -> Tensor:
         if pred.ndim != 4 or pred.shape[-1] != 3 or pred.shape != target.shape:
             raise ValueError(
-                f"LPIPS expects two [B,H,W,3] images of equal shape, got {tuple(pred.shape)} and {tuple(target.shape)}"
+                f"LPIPS expects two [B,H,W,3] images of equal shape, "
+                f"got {tuple(pred.shape)} and {tuple(target.shape)}"
             )
         batch = pred.shape[0]
         both = torch.cat([pred, target], dim=0).permute(0, 3, 1, 2).to(self.shift.dtype)
@@ -113,7 +122,9 @@ class LPIPS(nn.Module):
         return distance
 
 
-def convert_lpips_state_dict(vgg_state_dict: dict[str, Tensor], lin_state_dict: dict[str, Tensor]) -> dict[str, Tensor]:
+def convert_lpips_state_dict(
+    vgg_state_dict: dict[str, Tensor], lin_state_dict: dict[str, Tensor]
+) -> dict[str, Tensor]:
     """Official weights -> this module's key names (see the module docstring).
 
     ``vgg_state_dict``: torchvision ``vgg16().state_dict()`` (``features.{idx}.weight``; classifier keys
@@ -158,10 +169,13 @@ def _read_weights(path: Path) -> dict[str, Tensor]:
             raise ValueError(f"LPIPS weights file {path} lacks key '{key}' (shape {list(shape)})")
         if tuple(state[key].shape) != shape:
             raise ValueError(
-                f"LPIPS weights file {path}: key '{key}' has shape {list(state[key].shape)}, expected {list(shape)}"
+                f"LPIPS weights file {path}: key '{key}' has shape {list(state[key].shape)}, "
+                f"expected {list(shape)}"
             )
         if key.startswith("lin.") and bool((state[key] < 0).any()):
-            raise ValueError(f"LPIPS weights file {path}: key '{key}' has negative weights (LPIPS lin is >= 0)")
+            raise ValueError(
+                f"LPIPS weights file {path}: key '{key}' has negative weights (LPIPS lin is >= 0)"
+            )
     return state
 
 

@@ -210,7 +210,9 @@ def multiview_losses_batched(
     if src_uv.ndim != 3 or src_uv.shape[0] != batch or src_uv.shape[-1] != 2:
         raise ValueError(f"src_uv must have shape [P,n,2] with P={batch}, got {tuple(src_uv.shape)}")
     if src_uv_valid is not None and src_uv_valid.shape != src_uv.shape[:2]:
-        raise ValueError(f"src_uv_valid must have shape {tuple(src_uv.shape[:2])}, got {tuple(src_uv_valid.shape)}")
+        raise ValueError(
+            f"src_uv_valid must have shape {tuple(src_uv.shape[:2])}, got {tuple(src_uv_valid.shape)}"
+        )
     dtype = src_depth.dtype
     src_height, src_width = src_depth.shape[-2:]
     tgt_height, tgt_width = tgt_depth.shape[-2:]
@@ -264,7 +266,9 @@ def multiview_losses_batched(
     depth_residual = torch.where(depth_valid, depth_residual, torch.zeros_like(depth_residual))
     n_depth = depth_valid.sum()
     loss_depth = depth_residual.sum() / n_depth.clamp_min(1).to(dtype)
-    return MultiViewTerms(silhouette=loss_silhouette, depth=loss_depth, n_silhouette=n_silhouette, n_depth=n_depth)
+    return MultiViewTerms(
+        silhouette=loss_silhouette, depth=loss_depth, n_silhouette=n_silhouette, n_depth=n_depth
+    )
 
 
 def multiview_losses(
@@ -292,7 +296,17 @@ def multiview_losses(
         if x.ndim != ndim:
             raise ValueError(f"{name} must be {ndim}-D for a single pair, got shape {tuple(x.shape)}")
     return multiview_losses_batched(
-        src_depth[None], src_alpha[None], src_uv[None], src_w2c[None], src_K[None],
-        tgt_depth[None], tgt_alpha[None], tgt_silhouette[None], tgt_w2c[None], tgt_K[None],
-        near, far, cfg,
+        src_depth[None],
+        src_alpha[None],
+        src_uv[None],
+        src_w2c[None],
+        src_K[None],
+        tgt_depth[None],
+        tgt_alpha[None],
+        tgt_silhouette[None],
+        tgt_w2c[None],
+        tgt_K[None],
+        near,
+        far,
+        cfg,
     )

@@ -16,7 +16,9 @@ def _check_pair(pred: Tensor, target: Tensor) -> None:
     if pred.ndim != 4:
         raise ValueError(f"expected images of shape [B,H,W,C], got pred of shape {tuple(pred.shape)}")
     if pred.shape != target.shape:
-        raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} must have the same shape")
+        raise ValueError(
+            f"pred {tuple(pred.shape)} and target {tuple(target.shape)} must have the same shape"
+        )
 
 
 def _check_weights(weights: Tensor, batch: int) -> None:
@@ -39,7 +41,8 @@ def ssim_per_image(pred: Tensor, target: Tensor) -> Tensor:
     _check_pair(pred, target)
     if min(pred.shape[1], pred.shape[2]) < SSIM_WINDOW:
         raise ValueError(
-            f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {pred.shape[1]}x{pred.shape[2]}"
+            f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, "
+            f"got {pred.shape[1]}x{pred.shape[2]}"
         )
     nchw_pred = pred.permute(0, 3, 1, 2)
     nchw_target = target.permute(0, 3, 1, 2)

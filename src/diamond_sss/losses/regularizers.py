@@ -31,7 +31,7 @@ def _check_same_pixels(name: str, x: Tensor, ref_name: str, ref: Tensor) -> None
 
 
 def masked_mean(values: Tensor, mask: Tensor | None) -> Tensor:
-    """``sum(M v) / sum(M)`` over every element, ``M`` broadcast to ``values``; plain mean if ``mask`` is None.
+    """``sum(M v) / sum(M)`` over all elements, ``M`` broadcast to ``values``; plain mean if ``mask`` is None.
 
     Returns exactly 0 (with a graph) when the mask is empty.
     """
@@ -49,7 +49,7 @@ def safe_ratio(numerator: Tensor, denominator: Tensor) -> Tensor:
 def mask_bce_loss(alpha: Tensor, mask: Tensor, eps: float = DEFAULT_EPS) -> Tensor:
     """Eq. A.4: ``mean_x -[M log a + (1 - M) log(1 - a)]`` with ``a = clamp(alpha, eps, 1 - eps)``.
 
-    ``alpha`` is the accumulated opacity, ``mask`` the image mask, both ``[B,H,W,1]``. Averaged over all pixels.
+    ``alpha`` is the accumulated opacity, ``mask`` the image mask, both ``[B,H,W,1]``; mean over all pixels.
     """
     _check_map("alpha", alpha, 1)
     _check_map("mask", mask, 1)
@@ -157,7 +157,9 @@ def _batched_camera(name: str, x: Tensor, batch: int, shape: tuple[int, int]) ->
         return x.expand(batch, *shape)
     if x.shape == (batch, *shape):
         return x
-    raise ValueError(f"{name} must have shape {list(shape)} or [B,{shape[0]},{shape[1]}], got {tuple(x.shape)}")
+    raise ValueError(
+        f"{name} must have shape {list(shape)} or [B,{shape[0]},{shape[1]}], got {tuple(x.shape)}"
+    )
 
 
 def normals_from_depth(depth: Tensor, w2c: Tensor, K: Tensor) -> Tensor:
@@ -205,7 +207,9 @@ def incident_light_loss(incident: Tensor, visibility: Tensor, mask: Tensor | Non
     Any matching shapes (per-Gaussian ``[N,1]`` or per-pixel ``[B,H,W,1]``); ``mask`` broadcastable.
     """
     if incident.shape != visibility.shape:
-        raise ValueError(f"incident {tuple(incident.shape)} and visibility {tuple(visibility.shape)} must match")
+        raise ValueError(
+            f"incident {tuple(incident.shape)} and visibility {tuple(visibility.shape)} must match"
+        )
     return masked_mean((incident.clamp(0.0, 1.0) - visibility).abs(), mask)
 
 
