@@ -18,6 +18,7 @@ from diamond_sss.shading import (
     fresnel_schlick_ue4,
     geometry_smith,
     ggx_distribution,
+    light_geometry,
     light_sh_encoding,
     pbr_shade,
     positional_encoding,
@@ -347,6 +348,28 @@ def test_sss_mlp_deterministic_init_and_gradients():
     for name, param in a.named_parameters():
         assert param.grad is not None and torch.isfinite(param.grad).all(), name
         assert param.grad.abs().sum() > 0, name
+
+
+def test_light_geometry_feeds_the_mlp():
+    means = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    geometry = light_geometry(means, torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[1.0, 3.0, 0.0]]))
+    torch.testing.assert_close(geometry.light_distance, torch.tensor([[[math.sqrt(10.0)], [3.0]]]))
+    torch.testing.assert_close(geometry.light_dirs[0, 1], torch.tensor([0.0, 1.0, 0.0]))
+    torch.testing.assert_close(geometry.view_dirs[0, 1], torch.tensor([-1.0, 0.0, 2.0]) / math.sqrt(5.0))
+    torch.manual_seed(0)
+    out = SSSResidualMLP()(
+        means,
+        torch.tensor([[1.0, 0.0, 0.0, 0.0]]).expand(2, 4),
+        torch.full((2, 3), 0.1),
+        geometry.view_dirs,
+        geometry.light_dirs,
+        torch.tensor([[0.0, 0.0, 1.0]]).expand(2, 3),
+        torch.ones(1, 2, 1),
+        geometry.light_distance,
+    )
+    assert out.residual.shape == (1, 2, 3)
+    with pytest.raises(ValueError, match="camera_center and light_pos"):
+        light_geometry(means, torch.zeros(2, 3), torch.zeros(1, 3))
 
 
 # ----------------------------------------------------------------------------- deferred shading

@@ -27,12 +27,20 @@ from diamond_sss.shading.raytrace import (
     sample_uniform_sphere,
 )
 from diamond_sss.shading.sh import eval_sh, light_sh_encoding, num_sh_bases, sh_basis, visibility_from_sh
-from diamond_sss.shading.sss_mlp import SSSMLPConfig, SSSOutput, SSSResidualMLP, positional_encoding
+from diamond_sss.shading.sss_mlp import (
+    LightGeometry,
+    SSSMLPConfig,
+    SSSOutput,
+    SSSResidualMLP,
+    light_geometry,
+    positional_encoding,
+)
 
 __all__ = [
     "GBUFFER_FEATURES",
     "GBUFFER_FEATURE_DIM",
     "GBuffer",
+    "LightGeometry",
     "PBRTerms",
     "SSSMLPConfig",
     "SSSOutput",
@@ -46,6 +54,7 @@ __all__ = [
     "gaussian_transmittance",
     "geometry_smith",
     "ggx_distribution",
+    "light_geometry",
     "light_sh_encoding",
     "num_sh_bases",
     "pbr_shade",

@@ -26,6 +26,40 @@ def positional_encoding(x: Tensor, num_freqs: int) -> Tensor:
 
 
 @dataclass
+class LightGeometry:
+    """Per-Gaussian directions for the MLP, batched over ``B`` camera/light pairs.
+
+    ``view_dirs``/``light_dirs``: unit vectors from each centre towards the camera/light ``[B, N, 3]``;
+    ``light_distance``: ``|p_light - mu|`` in scene units ``[B, N, 1]``.
+    """
+
+    view_dirs: Tensor
+    light_dirs: Tensor
+    light_distance: Tensor
+
+
+def light_geometry(means: Tensor, camera_center: Tensor, light_pos: Tensor) -> LightGeometry:
+    """``w_v = normalize(c - mu)``, ``w_l = normalize(p - mu)``, ``d_l = |p - mu|``.
+
+    ``means [N, 3]``, ``camera_center [B, 3]``, ``light_pos [B, 3]`` (world) -> :class:`LightGeometry`.
+    """
+    if means.dim() != 2 or means.shape[-1] != 3:
+        raise ValueError(f"means must be [N, 3], got {tuple(means.shape)}")
+    if camera_center.shape != light_pos.shape or camera_center.dim() != 2 or camera_center.shape[-1] != 3:
+        raise ValueError(
+            f"camera_center and light_pos must both be [B, 3], got {tuple(camera_center.shape)} "
+            f"and {tuple(light_pos.shape)}"
+        )
+    to_light = light_pos[:, None, :] - means[None]
+    distance = to_light.norm(dim=-1, keepdim=True)
+    return LightGeometry(
+        view_dirs=F.normalize(camera_center[:, None, :] - means[None], dim=-1),
+        light_dirs=to_light / distance.clamp_min(1e-12),
+        light_distance=distance,
+    )
+
+
+@dataclass
 class SSSMLPConfig:
     """Architecture of :class:`SSSResidualMLP`.
 
