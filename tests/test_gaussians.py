@@ -296,6 +296,8 @@ def test_visual_hull_with_two_views_still_contains_the_sphere():
     masks, w2c, K = _sphere_rig([(1, 0.2, 0.1), (-0.3, 1, 0.2)])
     hull = carve_visual_hull(masks, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=32)
     _assert_contains_sphere(hull)
+    channel_last = carve_visual_hull(masks[..., None], w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=32)
+    assert torch.equal(channel_last.occupied, hull.occupied)
     points = visual_hull_points(masks, w2c, K, BOUNDS_CENTER, BOUNDS_RADIUS, resolution=32, num_points=500)
     assert points.shape == (500, 3)
     assert float((points - BOUNDS_CENTER).norm(dim=-1).max()) <= BOUNDS_RADIUS + hull.voxel_size

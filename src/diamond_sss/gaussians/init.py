@@ -157,15 +157,18 @@ def carve_visual_hull(
     tolerates noisy masks at the price of a fatter hull.
 
     Args:
-        masks: ``[V,H,W]`` foreground masks in ``[0,1]``.
+        masks: ``[V,H,W]`` (or ``[V,H,W,1]``) foreground masks in ``[0,1]``, one per camera view (the
+            masks of one view under other lights add nothing but weight in ``min_views_fraction``).
         w2c: ``[V,4,4]`` OpenCV world-to-camera matrices.
         K: ``[V,3,3]`` pixel intrinsics.
         bounds_center: ``[3]`` centre of the scene's bounding sphere.
         bounds_radius: its radius (scene units); the grid is the sphere's bounding cube.
         resolution: voxels per side.
     """
+    if masks.ndim == 4 and masks.shape[-1] == 1:
+        masks = masks[..., 0]
     if masks.ndim != 3:
-        raise ValueError(f"masks must have shape [V,H,W], got {tuple(masks.shape)}")
+        raise ValueError(f"masks must have shape [V,H,W] or [V,H,W,1], got {tuple(masks.shape)}")
     num_views, height, width = masks.shape
     if w2c.shape != (num_views, 4, 4) or K.shape != (num_views, 3, 3):
         raise ValueError(
