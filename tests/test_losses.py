@@ -385,3 +385,20 @@ def test_convert_official_state_dicts(layout):
     del vgg_sd[f"{first}.bias"]
     with pytest.raises(KeyError, match="14.bias"):
         convert_lpips_state_dict(vgg_sd, lin_sd)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_cuda_matches_cpu(tmp_path, fresh_lpips_warning):
+    path = tmp_path / "lpips_vgg.safetensors"
+    save_file(_random_lpips_weights(), str(path))
+    model = load_lpips(str(path))
+    a, b = _images(batch=2, size=32, seed=7)
+    mask = (a[..., :1] > 0.3).float()
+    cpu = [photometric_loss(a, b, 0.3), bilateral_smoothness_loss(a, b, mask), model(a, b)]
+    a, b, mask = a.cuda(), b.cuda(), mask.cuda()
+    model = model.cuda()
+    cuda = [photometric_loss(a, b, 0.3), bilateral_smoothness_loss(a, b, mask), model(a, b)]
+    for expected, value in zip(cpu, cuda):
+        assert value.device.type == "cuda"
+        assert torch.allclose(value.cpu(), expected, rtol=1e-4, atol=1e-5)

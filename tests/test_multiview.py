@@ -61,16 +61,18 @@ def ones(size: int = SIZE) -> torch.Tensor:
 
 
 def run(src, tgt, src_depth, tgt_depth, cfg=None, uv=None, src_alpha=None, tgt_alpha=None, sil=None):
+    """Multi-view losses of one pair; alpha, silhouette and pixels default to all ones / every pixel."""
     (src_w2c, src_K), (tgt_w2c, tgt_K) = src, tgt
+    src_ones, tgt_ones = torch.ones_like(src_depth.detach()), torch.ones_like(tgt_depth.detach())
     return multiview_losses(
         src_depth,
-        ones(src_depth.shape[0]) if src_alpha is None else src_alpha,
-        all_pixels(src_depth.shape[0]) if uv is None else uv,
+        src_ones if src_alpha is None else src_alpha,
+        all_pixels(src_depth.shape[0]).to(src_depth.device) if uv is None else uv,
         src_w2c,
         src_K,
         tgt_depth,
-        ones(tgt_depth.shape[0]) if tgt_alpha is None else tgt_alpha,
-        ones(tgt_depth.shape[0]) if sil is None else sil,
+        tgt_ones if tgt_alpha is None else tgt_alpha,
+        tgt_ones if sil is None else sil,
         tgt_w2c,
         tgt_K,
         NEAR,
@@ -420,3 +422,30 @@ def test_gaussian_outside_target_silhouette_is_pulled_back_inside():
         losses.append(terms.silhouette.item())
     assert before < 0.5 and silhouette_at_projection() > 0.9  # outside, then inside (threshold 0.5)
     assert losses[-1] < 0.5 * losses[0]
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_cuda_matches_cpu():
+    src = camera((0.3, -0.2, 3.0), (0.0, 0.0, 0.0))
+    tgt = camera((1.0, 0.6, 2.8), (0.1, 0.0, 0.0))
+    src_depth = ground_plane_depth(*src) + 0.1
+    tgt_depth = ground_plane_depth(*tgt)
+    sil = torch.linspace(0.0, 1.0, SIZE, dtype=torch.float64).expand(SIZE, SIZE).contiguous()
+    mask = torch.zeros(SIZE, SIZE)
+    mask[8:24, 8:24] = 1.0
+    cfg = MultiViewConfig(occlusion_tol=1.0, sil_threshold=0.3)
+    results = []
+    for device in ("cpu", "cuda"):
+        uv = sample_foreground_pixels(mask.to(device), 50, torch.Generator().manual_seed(0)).to(torch.float64)
+        cams = [tuple(x.to(device) for x in view) for view in (src, tgt)]
+        depth = src_depth.to(device).requires_grad_(True)
+        terms = run(*cams, depth, tgt_depth.to(device), cfg, uv=uv, sil=sil.to(device))
+        (terms.silhouette + terms.depth).backward()
+        results.append((terms.silhouette.item(), terms.depth.item(), depth.grad.cpu()))
+        assert terms.silhouette.device.type == device
+    assert results[0][0] == pytest.approx(results[1][0], rel=1e-9)
+    assert results[0][1] == pytest.approx(results[1][1], rel=1e-9)
+    assert torch.allclose(results[0][2], results[1][2], rtol=1e-7, atol=1e-12)
+    pairs = sample_view_pairs(ring_centres(6).cuda(), 5, "nearest-k", 2, torch.Generator().manual_seed(0))
+    assert pairs.device.type == "cuda" and pairs.shape == (5, 2)
