@@ -490,3 +490,17 @@ def test_gbuffer_from_features_round_trip_and_validation():
             torch.ones(1, 3),
             torch.tensor(1.0),
         )
+
+
+def test_deferred_gradients_finite_with_uncovered_pixels():
+    gbuffer, w2c, K, light_pos, light_rgb = plane_scene(size=4)
+    for name in ("depth", "normal", "alpha"):
+        value = getattr(gbuffer, name).clone()
+        value[0, 0] = 0.0  # an uncovered row: zero depth, zero normal, zero alpha
+        setattr(gbuffer, name, value.requires_grad_())
+    w2c.requires_grad_()
+    result = deferred_shade(gbuffer, w2c, K, light_pos, light_rgb, torch.tensor(0.5))
+    result.radiance.sum().backward()
+    for grad in (gbuffer.depth.grad, gbuffer.normal.grad, gbuffer.alpha.grad, w2c.grad):
+        assert torch.isfinite(grad).all()
+    assert gbuffer.depth.grad[0, 1:].abs().sum() > 0
