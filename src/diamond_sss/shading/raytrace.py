@@ -94,7 +94,8 @@ def gaussian_transmittance(
     Gaussian each ray ignores (its own source), ``-1`` for none. Gaussians whose ``3 sigma_max`` bounding
     sphere misses the segment ``[t_min, t_max]`` are culled (they would absorb at most ``o e^-4.5``);
     the rest are evaluated exactly. Work is chunked ``ray_chunk x gaussian_chunk`` to bound memory.
-    No gradient (``V_RT`` is a target).
+    The culling is dense, ``O(R N)`` (two small matmuls per chunk; no BVH), so for large models trace a
+    random subset of Gaussians per step as SSS-3DGS does. No gradient (``V_RT`` is a target).
     """
     num_rays, num_gaussians = origins.shape[0], means.shape[0]
     if origins.shape != (num_rays, 3) or dirs.shape != (num_rays, 3):
