@@ -333,6 +333,36 @@ def test_lpips_loads_and_measures(tmp_path, fresh_lpips_warning, monkeypatch):
     assert from_env is not None and torch.allclose(from_env(a, b), distance)
 
 
+def test_lpips_first_layer_matches_a_direct_computation(tmp_path, fresh_lpips_warning):
+    weights = _random_lpips_weights(seed=8)
+    for index in range(1, len(LIN_CHANNELS)):
+        weights[f"lin.{index}.weight"].zero_()
+    weights["lin.0.weight"].fill_(1.0)
+    path = tmp_path / "first_layer.safetensors"
+    save_file(weights, str(path))
+    model = load_lpips(str(path))
+    a, b = _images(batch=2, size=16, seed=9)
+    shift = torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1)
+    scale = torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1)
+
+    def relu1_2(image):
+        x = ((image.permute(0, 3, 1, 2) * 2 - 1) - shift) / scale
+        x = torch.relu(
+            torch.nn.functional.conv2d(
+                x, weights["vgg.conv1_1.weight"], weights["vgg.conv1_1.bias"], padding=1
+            )
+        )
+        x = torch.relu(
+            torch.nn.functional.conv2d(
+                x, weights["vgg.conv1_2.weight"], weights["vgg.conv1_2.bias"], padding=1
+            )
+        )
+        return x / (x.norm(dim=1, keepdim=True) + 1e-10)
+
+    expected = (relu1_2(a) - relu1_2(b)).square().sum(1).mean(dim=(1, 2))
+    assert torch.allclose(model(a, b), expected, rtol=1e-4, atol=1e-6)
+
+
 def test_lpips_missing_weights_warns_once(tmp_path, fresh_lpips_warning):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
