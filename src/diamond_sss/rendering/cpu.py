@@ -20,7 +20,6 @@ import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from diamond_sss.rendering.projection import ALPHA_THRESHOLD, ProjectedGaussians, tile_grid_shape
@@ -142,27 +141,56 @@ def composite_tiles(log_alpha: Tensor, features: Tensor) -> tuple[Tensor, Tensor
     """Front-to-back compositing of ``log_alpha [T,P,K]`` (``ln o - q/2`` per pixel and depth-sorted slot)
     and slot features ``[T,K,C]``. Returns premultiplied ``features [T,P,C]`` and ``alpha [T,P]``.
 
-    ``alpha = min(0.999, exp(log_alpha))``, zeroed below 1/255; ``w_i = alpha_i exp(sum_{j<i} ln(1 - alpha_j))``,
-    zeroed from the first slot whose inclusive transmittance is at most 1e-4 on.
+    ``alpha_i = min(0.999, exp(log_alpha_i))``, zeroed below 1/255; ``w_i = alpha_i T_i`` with
+    ``T_i = prod_{j<i} (1 - alpha_j)``, zeroed from the first slot whose inclusive transmittance is at most 1e-4.
+    Differentiable (hand-written backward, see :class:`_Composite`).
     """
-    # Exponents are clamped before exp: exp of large negative numbers (denormal results) is very slow on CPUs.
-    log_alpha = log_alpha.clamp(min=math.log(ALPHA_THRESHOLD) - 1.0, max=math.log(MAX_ALPHA))
-    alpha = F.threshold(torch.exp(log_alpha), ALPHA_THRESHOLD, 0.0)
-    log_transmit = torch.log1p(-alpha)
-    log_t_incl = torch.cumsum(log_transmit, dim=-1)
-    with torch.no_grad():
-        keep = (log_t_incl > math.log(MIN_TRANSMITTANCE)).to(alpha.dtype)
-    log_t_excl = (log_t_incl - log_transmit).clamp_min(math.log(MIN_TRANSMITTANCE) - 1.0)
-    weights = alpha * torch.exp(log_t_excl) * keep
-    return weights @ features, weights.sum(-1)
+    return _Composite.apply(log_alpha, features)
+
+
+class _Composite(torch.autograd.Function):
+    """Compositing with an analytic backward pass (about half the memory traffic of plain autograd).
+
+    With ``g_w = dL/dw`` and ``w_k = alpha_k T_k``:
+    ``dL/dalpha_j = g_w,j T_j - (sum_{k>j} g_w,k w_k) / (1 - alpha_j)`` and
+    ``dL/dlog_alpha = alpha dL/dalpha`` where the alpha is neither clamped nor cut off.
+    """
+
+    @staticmethod
+    def forward(ctx, log_alpha: Tensor, features: Tensor) -> tuple[Tensor, Tensor]:
+        # Clamped before exp: exp of large negative numbers (denormal results) is very slow on CPUs.
+        alpha = log_alpha.clamp(min=math.log(ALPHA_THRESHOLD) - 1.0, max=math.log(MAX_ALPHA)).exp_()
+        torch.threshold_(alpha, ALPHA_THRESHOLD, 0.0)
+        log_transmit = torch.log1p(alpha.neg())
+        log_t_incl = torch.cumsum(log_transmit, dim=-1)
+        transmit = log_t_incl.sub(log_transmit)
+        log_t_min = math.log(MIN_TRANSMITTANCE)
+        if log_t_incl.numel() and bool(log_t_incl[..., -1].min() <= log_t_min):
+            transmit.clamp_min_(log_t_min - 1.0).exp_().masked_fill_(log_t_incl <= log_t_min, 0.0)
+        else:
+            transmit.exp_()
+        weights = alpha * transmit
+        ctx.save_for_backward(log_alpha, alpha, transmit, weights, features)
+        return weights @ features, weights.sum(-1)
+
+    @staticmethod
+    def backward(ctx, grad_features: Tensor, grad_alpha: Tensor) -> tuple[Tensor, Tensor]:
+        log_alpha, alpha, transmit, weights, features = ctx.saved_tensors
+        grad_weights = torch.baddbmm(grad_alpha[..., None], grad_features, features.transpose(-1, -2))
+        grad_slot_features = weights.transpose(-1, -2) @ grad_features
+        behind = grad_weights * weights
+        behind = behind.sum(-1, keepdim=True) - behind.cumsum(-1)
+        grad_log_alpha = grad_weights.mul_(transmit).sub_(behind.div_(1.0 - alpha)).mul_(alpha)
+        grad_log_alpha.masked_fill_(log_alpha >= math.log(MAX_ALPHA), 0.0)
+        return grad_log_alpha, grad_slot_features
 
 
 def _absgrad_hook(
     absgrad: Tensor, rows: Tensor, slots: Tensor, offsets: Tensor, means: Tensor, conics: Tensor
 ):
     """Hook on the log_alpha ``[T,P,K]`` of one tile batch. Adds the AbsGS gradient of the 2D means,
-    ``sum_p |dL/dl_p dl_p/dmu|`` (``l`` = log-alpha) (absolute values per pixel before the sum, as gsplat), to the rows
-    ``rows[entry]`` of ``absgrad [R,2]``.
+    ``sum_p |dL/dl_p dl_p/dmu|`` (``l``: log-alpha; absolute values per pixel before the sum, as gsplat),
+    to the rows ``rows[entry]`` of ``absgrad [R,2]``.
     ``slots [T,K]`` are entry indices (``-1`` = padding), ``means [T,K,2]`` tile-local, ``conics [T,K,3]``.
     """
 
@@ -190,7 +218,7 @@ def rasterize_entries(
     width: int,
     height: int,
     tile_size: int = 16,
-    max_batch_elements: int = 1 << 22,
+    max_batch_elements: int = 1 << 18,
     absgrad: Tensor | None = None,
     absgrad_rows: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, TileLists]:
