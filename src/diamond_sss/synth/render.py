@@ -15,6 +15,7 @@ foreground linear RGB values over a few front-lit probe renders of training view
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import tempfile
@@ -47,8 +48,12 @@ FALLBACK_VARIANT = "scalar_rgb"
 _GL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
 
 
+@functools.lru_cache(maxsize=1)
 def select_variant() -> str:
-    """Activate ``llvm_ad_rgb`` if it works here (needs libLLVM 19), else ``scalar_rgb``. Returns the name."""
+    """Activate ``llvm_ad_rgb`` if it works here (needs libLLVM 19), else ``scalar_rgb`` (logged once).
+
+    Returns the variant's name. Cached: the choice is made once per process.
+    """
     import mitsuba as mi
 
     try:
