@@ -171,18 +171,24 @@ class _Composite(torch.autograd.Function):
             transmit.exp_()
         weights = alpha * transmit
         ctx.save_for_backward(log_alpha, alpha, transmit, weights, features)
-        return weights @ features, weights.sum(-1)
+        # (f^T w^T)^T rather than w f: BLAS is several times faster with the long axis K inside.
+        return _transposed_matmul(features.transpose(-1, -2), weights.transpose(-1, -2)), weights.sum(-1)
 
     @staticmethod
     def backward(ctx, grad_features: Tensor, grad_alpha: Tensor) -> tuple[Tensor, Tensor]:
         log_alpha, alpha, transmit, weights, features = ctx.saved_tensors
         grad_weights = torch.baddbmm(grad_alpha[..., None], grad_features, features.transpose(-1, -2))
-        grad_slot_features = weights.transpose(-1, -2) @ grad_features
+        grad_slot_features = _transposed_matmul(grad_features.transpose(-1, -2), weights)
         behind = grad_weights * weights
         behind = behind.sum(-1, keepdim=True) - behind.cumsum(-1)
         grad_log_alpha = grad_weights.mul_(transmit).sub_(behind.div_(1.0 - alpha)).mul_(alpha)
         grad_log_alpha.masked_fill_(log_alpha >= math.log(MAX_ALPHA), 0.0)
         return grad_log_alpha, grad_slot_features
+
+
+def _transposed_matmul(a: Tensor, b: Tensor) -> Tensor:
+    """``(a @ b)^T`` over the last two axes."""
+    return (a @ b).transpose(-1, -2)
 
 
 def _absgrad_hook(

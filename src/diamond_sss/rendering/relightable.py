@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from diamond_sss.data.conventions import camera_centers
@@ -23,7 +22,7 @@ from diamond_sss.gaussians.model import GaussianModel
 from diamond_sss.rendering.rasterize import RasterOutput, rasterize
 from diamond_sss.shading.deferred import GBuffer, ShadingResult, deferred_shade
 from diamond_sss.shading.sh import visibility_from_sh
-from diamond_sss.shading.sss_mlp import SSSMLPConfig, SSSResidualMLP
+from diamond_sss.shading.sss_mlp import SSSMLPConfig, SSSResidualMLP, light_geometry
 
 MATERIAL_OVERRIDES = ("base_color", "roughness", "metallic", "subsurface")
 
@@ -45,11 +44,16 @@ class SceneRender:
 class RelightableScene(nn.Module):
     """Gaussians, the SSS residual MLP and the learnable global light intensity ``exp(log_light_scale)``."""
 
-    def __init__(self, gaussians: GaussianModel, sss_width: int = 32, light_init: float = -1.0) -> None:
+    def __init__(self, gaussians: GaussianModel, sss_width: int = 32, light_init: float = -1.0,
+                 scene_center: Tensor | None = None, scene_radius: float = 1.0,
+                 mixed_precision: bool = False) -> None:
         super().__init__()
         self.gaussians = gaussians
         self.mlp = SSSResidualMLP(SSSMLPConfig(width=sss_width))
         self.log_light_scale = nn.Parameter(torch.tensor(float(light_init)))
+        self.register_buffer("scene_center", torch.zeros(3) if scene_center is None else scene_center.float().clone())
+        self.register_buffer("scene_radius", torch.tensor(float(scene_radius)))
+        self.mixed_precision = mixed_precision
 
     @property
     def light_scale(self) -> Tensor:
@@ -57,19 +61,24 @@ class RelightableScene(nn.Module):
 
     def gaussian_features(self, viewmats: Tensor, light_positions: Tensor,
                           overrides: dict[str, float | Tensor] | None = None) -> Tensor:
-        """Per-image, per-Gaussian G-buffer features ``[B,N,14]`` (order of ``GBUFFER_FEATURES``)."""
+        """Per-image, per-Gaussian G-buffer features ``[B,N,14]`` (order of ``GBUFFER_FEATURES``).
+
+        The MLP sees positions, scales and light distances in units of the scene's bounding sphere
+        (``(x - c) / r``), so its positional encoding covers about ``[-1, 1]`` whatever the capture's units.
+        Under ``mixed_precision`` on CUDA the MLP runs in bfloat16 autocast.
+        """
         g = self.gaussians
         means = g.means
         batch, num = viewmats.shape[0], means.shape[0]
-        view_dirs = F.normalize(camera_centers(viewmats)[:, None, :] - means[None], dim=-1)
-        to_light = light_positions[:, None, :] - means[None]
-        light_distance = to_light.norm(dim=-1, keepdim=True)
-        light_dirs = to_light / light_distance.clamp_min(1e-8)
-        visibility = visibility_from_sh(g.visibility_sh, light_dirs).unsqueeze(-1)
+        geometry = light_geometry(means, camera_centers(viewmats), light_positions)
+        visibility = visibility_from_sh(g.visibility_sh, geometry.light_dirs).unsqueeze(-1)
         normals = g.normals
-        quats, scales = g.quats, g.scales
-        sss = self.mlp(means.expand(batch, num, 3), quats.expand(batch, num, 4), scales.expand(batch, num, 3),
-                       view_dirs, light_dirs, normals.expand(batch, num, 3), visibility, light_distance)
+        radius = self.scene_radius
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.mixed_precision and means.is_cuda):
+            sss = self.mlp(((means - self.scene_center) / radius).expand(batch, num, 3),
+                           g.quats.expand(batch, num, 4), (g.scales / radius).expand(batch, num, 3),
+                           geometry.view_dirs, geometry.light_dirs, normals.expand(batch, num, 3), visibility,
+                           geometry.light_distance / radius)
         materials = {"base_color": g.base_color, "roughness": g.roughness, "metallic": g.metallic,
                      "subsurface": g.subsurface}
         for name, value in (overrides or {}).items():
@@ -79,8 +88,8 @@ class RelightableScene(nn.Module):
             materials[name] = value.expand_as(materials[name])
         per_gaussian = torch.cat([normals, materials["base_color"], materials["roughness"], materials["metallic"],
                                   materials["subsurface"]], dim=-1)
-        return torch.cat([per_gaussian.expand(batch, num, per_gaussian.shape[-1]), visibility, sss.incident,
-                          sss.residual], dim=-1)
+        return torch.cat([per_gaussian.expand(batch, num, per_gaussian.shape[-1]), visibility,
+                          sss.incident.float(), sss.residual.float()], dim=-1)
 
     def render(self, viewmats: Tensor, Ks: Tensor, width: int, height: int, light_positions: Tensor,
                light_intensities: Tensor, *, overrides: dict[str, float | Tensor] | None = None,
