@@ -81,8 +81,12 @@ def time_case(n: int, resolution: int, channels: int, device: str, repeats: int,
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--counts", type=int, nargs="+", default=[1000, 5000, 20000], help="CPU Gaussian counts")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--counts", type=int, nargs="+", default=[1000, 5000, 20000], help="CPU Gaussian counts"
+    )
     parser.add_argument("--resolutions", type=int, nargs="+", default=[64, 128], help="CPU image sides (px)")
     parser.add_argument("--channels", type=int, default=8, help="feature channels")
     parser.add_argument("--repeats", type=int, default=3, help="timed repetitions (median is reported)")

@@ -19,7 +19,9 @@ cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GP
 def _camera(width: int, height: int, focal: float, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
     """Identity w2c (camera at the origin looking down +z) and a pinhole K with the centre on a pixel centre."""
     viewmats = torch.eye(4, dtype=dtype)[None]
-    Ks = torch.tensor([[focal, 0.0, width / 2 + 0.5], [0.0, focal, height / 2 + 0.5], [0.0, 0.0, 1.0]], dtype=dtype)
+    Ks = torch.tensor(
+        [[focal, 0.0, width / 2 + 0.5], [0.0, focal, height / 2 + 0.5], [0.0, 0.0, 1.0]], dtype=dtype
+    )
     return viewmats, Ks[None]
 
 
@@ -45,7 +47,9 @@ def _random_scene(n: int, n_cameras: int, channels: int, seed: int, dtype=torch.
         w2c[:3, 3] = -rot @ eye
         viewmats.append(w2c)
     viewmats = torch.stack(viewmats).to(dtype)
-    Ks = torch.tensor([[60.0, 0.0, 28.0], [0.0, 60.0, 20.0], [0.0, 0.0, 1.0]], dtype=dtype).expand(n_cameras, 3, 3)
+    Ks = torch.tensor([[60.0, 0.0, 28.0], [0.0, 60.0, 20.0], [0.0, 0.0, 1.0]], dtype=dtype).expand(
+        n_cameras, 3, 3
+    )
     tensors = (means, quats, scales, opacities, features, viewmats, Ks.contiguous())
     return tuple(t.to(device) for t in tensors)
 
@@ -88,7 +92,9 @@ def _single_gaussian(mean, scale, opacity, feature, dtype=torch.float32):
 def test_single_isotropic_gaussian_known_answer():
     width, height, focal, z, scale, opacity = 40, 36, 50.0, 2.5, 0.08, 0.7
     viewmats, Ks = _camera(width, height, focal)
-    means, quats, scales, opacities, features = _single_gaussian([0.0, 0.0, z], scale, opacity, [0.2, 0.5, 0.9])
+    means, quats, scales, opacities, features = _single_gaussian(
+        [0.0, 0.0, z], scale, opacity, [0.2, 0.5, 0.9]
+    )
     out = rasterize(means, quats, scales, opacities, features, viewmats, Ks, width, height, backend="cpu")
     assert isinstance(out, RasterOutput)
     assert out.features.shape == (1, height, width, 3)
@@ -104,8 +110,12 @@ def test_single_isotropic_gaussian_known_answer():
     assert alpha[height // 2, width // 2] == pytest.approx(opacity, abs=1e-6)
     covered = alpha > 0
     assert covered.sum() > 20
-    torch.testing.assert_close(out.depth[0, covered, 0], torch.full((int(covered.sum()),), z), rtol=1e-5, atol=0)
-    torch.testing.assert_close(out.features[0][covered] / alpha[covered, None], features.expand(int(covered.sum()), 3))
+    torch.testing.assert_close(
+        out.depth[0, covered, 0], torch.full((int(covered.sum()),), z), rtol=1e-5, atol=0
+    )
+    torch.testing.assert_close(
+        out.features[0][covered] / alpha[covered, None], features.expand(int(covered.sum()), 3)
+    )
     assert (out.depth[0, ~covered] == 0).all() and (out.features[0, ~covered] == 0).all()
 
 
@@ -128,7 +138,15 @@ def test_two_overlapping_gaussians_front_to_back():
 
     order = torch.tensor([1, 0])
     swapped = rasterize(
-        means[order], quats[order], scales[order], opacities[order], features[order], viewmats, Ks, width, height
+        means[order],
+        quats[order],
+        scales[order],
+        opacities[order],
+        features[order],
+        viewmats,
+        Ks,
+        width,
+        height,
     )
     torch.testing.assert_close(swapped.features, out.features)
     torch.testing.assert_close(swapped.alpha, out.alpha)
@@ -175,6 +193,9 @@ def test_culling_behind_camera_and_near_plane(z):
     out = rasterize(means, quats, scales, opacities, features, viewmats, Ks, 16, 16, backend="cpu")
     assert (out.alpha == 0).all() and (out.features == 0).all() and (out.depth == 0).all()
     assert (out.info["radii"] == 0).all()
+    out.info["means2d"].retain_grad()
+    (out.features.sum() + out.alpha.sum()).backward()  # still differentiable, with zero gradients
+    assert (means.grad == 0).all() and (out.info["means2d"].grad == 0).all()
 
 
 def test_culling_outside_image():
@@ -223,16 +244,22 @@ def test_per_camera_features_match_single_camera_renders():
 
 
 def test_gradcheck_float64():
-    means = torch.tensor([[0.1, -0.1, 2.0], [-0.2, 0.15, 2.4], [0.05, 0.2, 2.8], [0.2, 0.1, 3.1]], dtype=torch.float64)
+    means = torch.tensor(
+        [[0.1, -0.1, 2.0], [-0.2, 0.15, 2.4], [0.05, 0.2, 2.8], [0.2, 0.1, 3.1]], dtype=torch.float64
+    )
     g = torch.Generator().manual_seed(1)
     quats = torch.randn(4, 4, generator=g, dtype=torch.float64)
-    scales = torch.tensor([[0.625, 0.375, 0.5], [0.5, 0.75, 0.375], [0.625, 0.5, 0.75], [0.75, 0.5, 0.625]], dtype=torch.float64)
+    scales = torch.tensor(
+        [[0.625, 0.375, 0.5], [0.5, 0.75, 0.375], [0.625, 0.5, 0.75], [0.75, 0.5, 0.625]], dtype=torch.float64
+    )
     opacities = torch.tensor([0.45, 0.6, 0.5, 0.7], dtype=torch.float64)
     features = torch.rand(4, 2, generator=g, dtype=torch.float64)
     viewmats, Ks = _camera(8, 8, 10.0, dtype=torch.float64)
 
     def render(means, quats, scales, opacities, features):
-        out = rasterize(means, quats, scales, opacities, features, viewmats, Ks, 8, 8, backend="cpu", tile_size=4)
+        out = rasterize(
+            means, quats, scales, opacities, features, viewmats, Ks, 8, 8, backend="cpu", tile_size=4
+        )
         return out.features, out.depth, out.alpha
 
     with torch.no_grad():
@@ -240,7 +267,9 @@ def test_gradcheck_float64():
         v, u = torch.meshgrid(torch.arange(8) + 0.5, torch.arange(8) + 0.5, indexing="ij")
         d = torch.stack([u, v], -1).reshape(-1, 1, 2).double() - proj.means2d[0]
         a, b, c = proj.conics[0].unbind(-1)
-        alpha = opacities * torch.exp(-0.5 * (a * d[..., 0] ** 2 + 2 * b * d[..., 0] * d[..., 1] + c * d[..., 1] ** 2))
+        alpha = opacities * torch.exp(
+            -0.5 * (a * d[..., 0] ** 2 + 2 * b * d[..., 0] * d[..., 1] + c * d[..., 1] ** 2)
+        )
         near_cutoff = (alpha > 0.8 / 255) & (alpha < 1.25 / 255)
         assert not near_cutoff.any() and alpha.max() < 0.99  # away from the non-smooth cut-off and clamp
         assert (alpha < 0.8 / 255).any() and (alpha > 1.25 / 255).sum() > 200
@@ -316,6 +345,8 @@ def test_invalid_inputs_raise():
         rasterize(means, quats[:, :3], scales, opacities, features, viewmats, Ks, 8, 8)
     with pytest.raises(ValueError, match="features"):
         rasterize(means, quats, scales, opacities, features[:4], viewmats, Ks, 8, 8)
+    with pytest.raises(TypeError, match="dtype"):
+        rasterize(means, quats, scales, opacities, features.double(), viewmats, Ks, 8, 8)
     with pytest.raises(ValueError, match="backend"):
         rasterize(means, quats, scales, opacities, features, viewmats, Ks, 8, 8, backend="opengl")
     if not torch.cuda.is_available():
@@ -344,7 +375,7 @@ def test_cpu_cuda_parity(per_camera):
     cpu, gpu = results["cpu"], results["cuda"]
     for a, b in zip(cpu[:3], gpu[:3]):
         torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-3)
-    assert torch.equal(cpu[3], gpu[3])
+    assert (cpu[3] != gpu[3]).float().mean() < 0.01  # radii: ceil() may differ where float32 rounding does
     torch.testing.assert_close(cpu[4], gpu[4], atol=1e-4, rtol=1e-2)
     for a, b in zip(cpu[5], gpu[5]):
         torch.testing.assert_close(a, b, atol=1e-3, rtol=1e-2)

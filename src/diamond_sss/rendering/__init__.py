@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
-from diamond_sss.rendering.projection import ProjectedGaussians, covariance_3d, project_gaussians, quat_to_rotmat
+from diamond_sss.rendering.projection import (
+    ProjectedGaussians,
+    covariance_3d,
+    project_gaussians,
+    quat_to_rotmat,
+)
 from diamond_sss.rendering.rasterize import RasterOutput, rasterize
 
 __all__ = [

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from diamond_sss.rendering.projection import ALPHA_THRESHOLD, ProjectedGaussians, tile_grid_shape
+from diamond_sss.rendering.projection import ALPHA_THRESHOLD, tile_grid_shape
 
 MAX_ALPHA = 0.999
 """Per-Gaussian alpha is clamped to this (gsplat)."""
@@ -270,7 +270,9 @@ def rasterize_entries(
         log_alpha = basis @ coef.transpose(-1, -2)
         if absgrad is not None and log_alpha.requires_grad:
             log_alpha.register_hook(
-                _absgrad_hook(absgrad, absgrad_rows, slots, offsets, local_means.detach(), slot_conics.detach())
+                _absgrad_hook(
+                    absgrad, absgrad_rows, slots, offsets, local_means.detach(), slot_conics.detach()
+                )
             )
         slot_features = torch.where(is_pad[..., None], 0.0, features[safe])
         colors, alpha = composite_tiles(log_alpha, slot_features)
@@ -281,6 +283,8 @@ def rasterize_entries(
     flat = torch.zeros(n_tiles, n_pixels, n_channels + 1, dtype=dtype, device=device)
     if outputs:
         flat = flat.index_copy(0, lists.tile_ids, torch.cat(outputs, dim=0))
+    else:  # nothing visible: keep the images attached to the graph so that every input gets a zero gradient
+        flat = flat + 0.0 * (means2d.sum() + conics.sum() + opacities.sum() + features.sum())
     image = flat.reshape(n_images, tiles_y, tiles_x, tile_size, tile_size, n_channels + 1)
     image = image.permute(0, 1, 3, 2, 4, 5).reshape(n_images, tiles_y * tile_size, tiles_x * tile_size, -1)
     image = image[:, :height, :width]

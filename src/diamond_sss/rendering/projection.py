@@ -65,8 +65,12 @@ def perspective_jacobian(means_cam: Tensor, Ks: Tensor, width: int, height: int)
     cx, cy = Ks[:, None, 0, 2], Ks[:, None, 1, 2]
     x, y, z = means_cam.unbind(-1)
     tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-    tx = z * torch.minimum((width - cx) / fx + 0.3 * tan_fovx, torch.maximum(-(cx / fx + 0.3 * tan_fovx), x / z))
-    ty = z * torch.minimum((height - cy) / fy + 0.3 * tan_fovy, torch.maximum(-(cy / fy + 0.3 * tan_fovy), y / z))
+    tx = z * torch.minimum(
+        (width - cx) / fx + 0.3 * tan_fovx, torch.maximum(-(cx / fx + 0.3 * tan_fovx), x / z)
+    )
+    ty = z * torch.minimum(
+        (height - cy) / fy + 0.3 * tan_fovy, torch.maximum(-(cy / fy + 0.3 * tan_fovy), y / z)
+    )
     zeros = torch.zeros_like(z)
     rows = (fx / z, zeros, -fx * tx / (z * z), zeros, fy / z, -fy * ty / (z * z))
     return torch.stack(rows, dim=-1).reshape(*z.shape, 2, 3)

@@ -72,16 +72,28 @@ def rasterize(
         packed: return per-(camera, Gaussian) info only for visible pairs (``[nnz, ...]``, with
             ``camera_ids`` / ``gaussian_ids``) instead of ``[B,N,...]``.
     """
-    n_cameras = _check_inputs(means, quats, scales, opacities, features, viewmats, Ks, width, height, tile_size)
+    n_cameras = _check_inputs(
+        means, quats, scales, opacities, features, viewmats, Ks, width, height, tile_size
+    )
     if backend not in ("auto", "cpu", "cuda"):
         raise ValueError(f"backend must be 'auto', 'cpu' or 'cuda', got {backend!r}")
     if backend == "auto":
         backend = "cuda" if means.is_cuda else "cpu"
-    kwargs = dict(near_plane=near_plane, far_plane=far_plane, tile_size=tile_size, absgrad=absgrad, packed=packed)
+    kwargs = {
+        "near_plane": near_plane,
+        "far_plane": far_plane,
+        "tile_size": tile_size,
+        "absgrad": absgrad,
+        "packed": packed,
+    }
     if backend == "cuda":
         if not means.is_cuda:
-            raise ValueError("backend='cuda' needs the tensors on a CUDA device; use backend='cpu' or .cuda()")
-        return _rasterize_cuda(means, quats, scales, opacities, features, viewmats, Ks, width, height, **kwargs)
+            raise ValueError(
+                "backend='cuda' needs the tensors on a CUDA device; use backend='cpu' or .cuda()"
+            )
+        return _rasterize_cuda(
+            means, quats, scales, opacities, features, viewmats, Ks, width, height, **kwargs
+        )
     return _rasterize_cpu(
         means, quats, scales, opacities, features, viewmats, Ks, width, height, n_cameras, **kwargs
     )
@@ -116,12 +128,16 @@ def _check_inputs(
         (features.ndim == 2 and features.shape[0] == n)
         or (features.ndim == 3 and features.shape[:2] == (n_cameras, n))
     ):
-        raise ValueError(f"features must be [N,C] or [B,N,C] with B={n_cameras}, N={n}, got {tuple(features.shape)}")
+        raise ValueError(
+            f"features must be [N,C] or [B,N,C] with B={n_cameras}, N={n}, got {tuple(features.shape)}"
+        )
     tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "features": features,
                "viewmats": viewmats, "Ks": Ks}  # fmt: skip
     for name, tensor in tensors.items():
-        if not tensor.is_floating_point():
-            raise TypeError(f"{name} must be a floating-point tensor, got {tensor.dtype}")
+        if tensor.dtype != means.dtype or not tensor.is_floating_point():
+            raise TypeError(
+                f"{name} must be a floating-point tensor of means' dtype {means.dtype}, got {tensor.dtype}"
+            )
         if tensor.device != means.device:
             raise ValueError(f"{name} is on {tensor.device} but means is on {means.device}")
     if int(width) <= 0 or int(height) <= 0 or int(tile_size) <= 0:
