@@ -93,8 +93,11 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=1, help="untimed repetitions first")
     parser.add_argument("--cuda-count", type=int, default=300_000, help="Gaussians in the CUDA case")
     parser.add_argument("--cuda-resolution", type=int, default=800, help="image side of the CUDA case (px)")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--output", type=Path, default=RESULTS, help="JSON file for the results")
     args = parser.parse_args()
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
 
     rows = [
         time_case(n, res, args.channels, "cpu", args.repeats, args.warmup)

@@ -229,7 +229,7 @@ def test_gaussian_straddling_tiles_renders_continuously():
     # Symmetric about the tile corner: mirrored pixels across both tile boundaries are equal and non-zero.
     torch.testing.assert_close(alpha, alpha.flip(0).flip(1), atol=1e-6, rtol=1e-5)
     assert alpha[15, 15] > 0.5 and alpha[15, 15] == pytest.approx(alpha[16, 16].item(), abs=1e-6)
-    assert int(tiled.info["tiles_per_gauss"][0]) == 4
+    assert tiled.info["tiles_per_gauss"].tolist() == [[4]]  # [cameras, Gaussians]
 
 
 def test_per_camera_features_match_single_camera_renders():

@@ -194,6 +194,11 @@ def _rasterize_cpu(
         absgrad_rows=None if packed else camera_ids * means.shape[0] + gaussian_ids,
     )
     tiles_x, tiles_y = tile_grid_shape(width, height, tile_size)
+    tiles_per_gauss = lists.tiles_per_entry.to(torch.int32)
+    if not packed:
+        tiles_per_gauss = torch.zeros_like(proj.radii[..., 0]).index_put_(
+            (camera_ids, gaussian_ids), tiles_per_gauss
+        )
     info: dict[str, Any] = {
         "backend": "cpu",
         "means2d": means2d,
@@ -204,7 +209,7 @@ def _rasterize_cpu(
         "tile_height": tiles_y,
         "n_batches": 1,
         "n_cameras": n_cameras,
-        "tiles_per_gauss": lists.tiles_per_entry,
+        "tiles_per_gauss": tiles_per_gauss,
     }
     if packed:
         info.update(
