@@ -293,6 +293,45 @@ def test_means2d_gradient_and_absgrad():
     assert (absgrad >= grad.abs() - 1e-6).all() and (absgrad[visible].sum() > grad[visible].abs().sum())
 
 
+def test_means2d_gradient_is_pixel_space_gradient():
+    """Moving the principal point by ``du`` translates every projected mean by ``du`` pixels, so the finite
+    difference of the loss along ``cx`` equals the sum of the ``info["means2d"]`` gradients along ``u``."""
+    scene = _random_scene(30, 1, 3, seed=9, dtype=torch.float64)
+    scene[0].requires_grad_(True)
+    weights = torch.rand(1, 40, 56, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+
+    def loss(Ks):
+        out = rasterize(*scene[:6], Ks, 56, 40, backend="cpu")
+        return (out.features * weights).sum(), out.info["means2d"]
+
+    value, means2d = loss(scene[6])
+    means2d.retain_grad()
+    value.backward()
+    step = torch.zeros_like(scene[6])
+    for axis, (row, col) in enumerate([(0, 2), (1, 2)]):
+        step.zero_()
+        step[0, row, col] = 1e-5
+        numeric = (loss(scene[6] + step)[0] - loss(scene[6] - step)[0]) / 2e-5
+        assert means2d.grad[..., axis].sum().item() == pytest.approx(numeric.item(), rel=1e-5, abs=1e-8)
+
+
+def test_packed_matches_unpacked():
+    scene = _random_scene(40, 2, 3, seed=10)
+    scene[0].requires_grad_(True)
+    results = []
+    for packed in (False, True):
+        out = rasterize(*scene, 56, 40, backend="cpu", packed=packed)
+        out.info["means2d"].retain_grad()
+        out.features.sum().backward()
+        results.append(out)
+    dense, packed = results
+    torch.testing.assert_close(dense.features, packed.features, atol=0, rtol=0)
+    cams, ids = packed.info["camera_ids"], packed.info["gaussian_ids"]
+    assert len(ids) == int((dense.info["radii"] > 0).all(-1).sum())
+    torch.testing.assert_close(dense.info["radii"][cams, ids], packed.info["radii"])
+    torch.testing.assert_close(dense.info["means2d"].grad[cams, ids], packed.info["means2d"].grad)
+
+
 @pytest.mark.parametrize("packed", [False, True])
 def test_default_strategy_runs_on_cpu(packed):
     from gsplat.strategy import DefaultStrategy
