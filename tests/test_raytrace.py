@@ -188,3 +188,18 @@ def test_cuda_matches_cpu():
     cpu = gaussian_transmittance(origins, dirs, *gaussians)
     gpu = gaussian_transmittance(origins.cuda(), dirs.cuda(), *(g.cuda() for g in gaussians))
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-4, atol=1e-5)
+
+
+def test_raytraced_visibility_from_a_subset_of_sources():
+    generator = torch.Generator().manual_seed(0)
+    means = torch.randn(40, 3, generator=generator)
+    quats = torch.nn.functional.normalize(torch.randn(40, 4, generator=generator), dim=-1)
+    scales = torch.rand(40, 3, generator=generator) * 0.3 + 0.05
+    opacities = torch.rand(40, generator=generator)
+    light = torch.tensor([3.0, 0.0, 0.0])
+    full = raytraced_visibility(means, quats, scales, opacities, light)
+    subset = torch.tensor([3, 17, 29])
+    part = raytraced_visibility(means, quats, scales, opacities, light, sources=subset)
+    assert part.visibility.shape == (3, 1)
+    torch.testing.assert_close(part.visibility, full.visibility[subset])
+    torch.testing.assert_close(part.dirs, full.dirs[subset])

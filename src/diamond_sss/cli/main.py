@@ -9,6 +9,7 @@ import tyro
 
 from diamond_sss.cli.data_commands import info, regimes
 from diamond_sss.cli.demo import demo
+from diamond_sss.cli.train_commands import evaluate, export, render, train
 from diamond_sss.data.errors import DataError
 
 
@@ -16,7 +17,8 @@ def commands() -> dict[str, Callable[..., None]]:
     """The subcommands, by name."""
     from diamond_sss.synth.cli import synth
 
-    return {"demo": demo, "info": info, "regimes": regimes, "synth": synth}
+    return {"demo": demo, "info": info, "regimes": regimes, "synth": synth, "train": train, "eval": evaluate,
+            "render": render, "export": export}
 
 
 def main(argv: list[str] | None = None) -> None:

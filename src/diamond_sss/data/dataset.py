@@ -267,16 +267,9 @@ class OLATDataset:
 
         A pure function of ``(step, batch_size, seed)``, so a resumed run draws the same batches.
         """
-        count = len(self.observations)
-        if count == 0:
+        if not self.observations:
             raise DataError(f"{self.json_path}: no observations to draw batches from")
-        out = []
-        for k in range(batch_size):
-            flat = step * batch_size + k
-            epoch, position = divmod(flat, count)
-            generator = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
-            out.append(int(torch.randperm(count, generator=generator)[position]))
-        return out
+        return seeded_epoch_indices(step, batch_size, len(self.observations), seed)
 
     def iter_batches(self, batch_size: int, seed: int, start_step: int = 0) -> Iterator[list[int]]:
         """Endless iterator of :meth:`batch_indices` from ``start_step`` on."""
@@ -308,6 +301,19 @@ class OLATDataset:
 
 
 _CACHED_PROPERTIES = {"presence"}
+
+
+def seeded_epoch_indices(step: int, batch_size: int, count: int, seed: int) -> list[int]:
+    """Indices in ``[0, count)`` of batch ``step``: consecutive slices of seeded per-epoch permutations.
+
+    Every index appears once per epoch; a pure function of its arguments (resumable).
+    """
+    out = []
+    for k in range(batch_size):
+        epoch, position = divmod(step * batch_size + k, count)
+        generator = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+        out.append(int(torch.randperm(count, generator=generator)[position]))
+    return out
 
 
 def scene_bounds(viewmats: Tensor, Ks: Tensor, width: int, height: int) -> SceneBounds:

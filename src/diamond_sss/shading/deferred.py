@@ -84,8 +84,9 @@ class GBuffer:
     ) -> GBuffer:
         """Split a stacked feature map ``[B, H, W, 14]`` (order of ``GBUFFER_FEATURES``) into a GBuffer.
 
-        With ``premultiplied=True`` (a plain alpha blend ``sum_i w_i a_i``), features and depth are divided
-        by ``max(alpha, eps)``; pixels with ``alpha <= eps`` get zeros.
+        ``depth`` is the rasterizer's expected depth (already alpha-normalised, gsplat's ``"ED"``) and is
+        kept as is. With ``premultiplied=True`` (a plain alpha blend ``sum_i w_i a_i``), the features are
+        divided by ``max(alpha, eps)``; pixels with ``alpha <= eps`` get zeros.
         """
         if features.shape[-1] != GBUFFER_FEATURE_DIM:
             raise ValueError(
@@ -94,7 +95,7 @@ class GBuffer:
         if premultiplied:
             covered = alpha > eps
             inv_alpha = torch.where(covered, 1.0 / alpha.clamp_min(eps), torch.zeros_like(alpha))
-            features, depth = features * inv_alpha, depth * inv_alpha
+            features = features * inv_alpha
         names = [name for name, _ in GBUFFER_FEATURES]
         parts = features.split([channels for _, channels in GBUFFER_FEATURES], dim=-1)
         return cls(**dict(zip(names, parts)), depth=depth, alpha=alpha)

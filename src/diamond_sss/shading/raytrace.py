@@ -184,11 +184,15 @@ def raytraced_visibility(
     num_samples: int = 0,
     generator: torch.Generator | None = None,
     normals: Tensor | None = None,
+    sources: Tensor | None = None,
     t_min: float = 1e-4,
     ray_chunk: int = 4096,
     gaussian_chunk: int = 2048,
 ) -> VisibilitySamples:
-    """``V_RT`` from every Gaussian centre towards the light(s) and ``num_samples`` random directions.
+    """``V_RT`` from Gaussian centres towards the light(s) and ``num_samples`` random directions.
+
+    ``sources [M]`` (indices) restricts the ray origins to those Gaussians (all of them when None); every
+    Gaussian still occludes. Results are then per source: ``dirs [M, S, 3]``, ``visibility [M, S]``.
 
     Columns ``0..L-1`` of the result are the ``L`` lights of ``light_pos`` (``[3]`` or ``[L, 3]``, rays end
     at the light: ``t_max = |light - mu|``); the next ``num_samples`` columns are directions drawn uniformly
@@ -196,12 +200,15 @@ def raytraced_visibility(
     the sampled directions are flipped into the hemisphere around the normal (SSS-3DGS). Each ray skips
     its own source Gaussian. Returns ``dirs [N, S, 3]``, ``visibility [N, S]``, ``S = L + num_samples``.
     """
-    num_gaussians = means.shape[0]
+    if sources is None:
+        sources = torch.arange(means.shape[0], device=means.device)
+    origins = means[sources]
+    num_gaussians = origins.shape[0]
     dir_sets: list[Tensor] = []
     bound_sets: list[Tensor] = []
     if light_pos is not None:
         lights = light_pos.reshape(-1, 3).to(means)
-        to_light = lights[None, :, :] - means[:, None, :]
+        to_light = lights[None, :, :] - origins[:, None, :]
         distance = to_light.norm(dim=-1)
         dir_sets.append(to_light / distance.clamp_min(1e-12).unsqueeze(-1))
         bound_sets.append(distance)
@@ -209,7 +216,7 @@ def raytraced_visibility(
         sampled = sample_uniform_sphere(num_gaussians * num_samples, generator=generator, device=means.device)
         sampled = sampled.to(means.dtype).reshape(num_gaussians, num_samples, 3)
         if normals is not None:
-            facing = (sampled * normals[:, None, :]).sum(-1, keepdim=True)
+            facing = (sampled * normals[sources][:, None, :]).sum(-1, keepdim=True)
             sampled = torch.where(facing < 0.0, -sampled, sampled)
         dir_sets.append(sampled)
         bound_sets.append(
@@ -220,7 +227,7 @@ def raytraced_visibility(
     dirs = torch.cat(dir_sets, dim=1)
     t_max = torch.cat(bound_sets, dim=1)
     num_dirs = dirs.shape[1]
-    source = torch.arange(num_gaussians, device=means.device).repeat_interleave(num_dirs)
+    source = sources.repeat_interleave(num_dirs)
     visibility = gaussian_transmittance(
         means[source],
         dirs.reshape(-1, 3),

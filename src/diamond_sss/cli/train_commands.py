@@ -1,0 +1,133 @@
+"""``diamond-sss train | eval | render | export``: reconstruct, score, render and export a scene."""
+
+from __future__ import annotations
+
+import json as json_module
+import math
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+from rich.console import Console
+from rich.table import Table
+
+SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
+                  tyro.conf.arg(name="set", help="override a config key: --set key=value (repeatable)")]
+
+
+def train(data: Path, out: Path, split: str = "train", regime: str = "all", preset: str = "diamond",
+          iterations: int | None = None, config: Path | None = None, set_: SetArg = [],  # noqa: B006
+          seed: int = 0, resume: bool = False, device: str = "auto", quiet: bool = False) -> None:
+    """Reconstruct a relightable translucent object from an OLAT data set (SSS-3DGS backbone).
+
+    Args:
+        data: data folder holding transforms_<split>.json.
+        out: run folder (config, regime, checkpoints, TensorBoard logs, model.safetensors).
+        split: training split.
+        regime: capture regime: all | all-views-1-light | views=5%,lights=5% | views=5,lights=6 | images=10.
+        preset: hyperparameter preset: diamond (Tab. 3, with multi-view losses) or sss3dgs (Tab. 4 original).
+        iterations: training steps (overrides the preset).
+        config: JSON file of config keys (e.g. the best configuration written by `diamond-sss tune`).
+        seed: seed of the regime selection, initialisation and every random draw.
+        resume: continue from the newest checkpoint in --out.
+        device: auto | cpu | cuda.
+        quiet: no progress bar.
+    """
+    from diamond_sss.training.run import train_run
+
+    overrides = {"seed": seed, "device": device}
+    if iterations is not None:
+        overrides["iterations"] = iterations
+    result = train_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides,
+                       config_file=config, sets=set_, resume=resume, show_progress=not quiet)
+    Console().print(f"trained {result.steps} steps in {result.seconds:.1f} s, {result.num_gaussians} Gaussians, "
+                    f"final loss {result.final_loss:.4f} -> {out / 'model.safetensors'}")
+
+
+def evaluate(run: Path, data: Path, split: str = "test", json: bool = False, lpips_weights: str | None = None,
+             max_images: int | None = None, figures: int = 4, device: str = "auto") -> None:
+    """Score a trained run on a split (default: novel views under novel lights).
+
+    Writes <run>/eval_<split>/metrics.json, per_image.csv, comparison.png and decomposition.png.
+    Metrics on sRGB images in [0,1], full frame, black background.
+
+    Args:
+        run: training run folder.
+        data: data folder holding transforms_<split>.json.
+        split: evaluation split.
+        json: print the metrics JSON instead of a table.
+        lpips_weights: LPIPS (VGG) weights in safetensors; default $DIAMOND_SSS_LPIPS_WEIGHTS; none -> lpips null.
+        max_images: evaluate only the first N images.
+        figures: rows of the GT | render | error figure (0: no figures).
+        device: auto | cpu | cuda.
+    """
+    from diamond_sss.training.run import evaluate_run
+
+    summary = evaluate_run(run, data, split=split, lpips_weights=lpips_weights, max_images=max_images,
+                           figures=figures, device=device, show_progress=not json)
+    if json:
+        print(json_module.dumps(summary, indent=2))
+        return
+    table = Table(title=f"{run} on {data} [{split}]")
+    for key in ("psnr", "ssim", "lpips", "masked_psnr", "mask_iou", "images"):
+        table.add_column(key)
+    table.add_row(*[_fmt(summary[k]) for k in ("psnr", "ssim", "lpips", "masked_psnr", "mask_iou", "images")])
+    Console().print(table)
+
+
+def _fmt(value) -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, float):
+        return "nan" if math.isnan(value) else f"{value:.4f}"
+    return str(value)
+
+
+def render(run: Path, out: Path, data: Path | None = None, split: str = "test", views: list[int] = [],  # noqa: B006
+           orbit: int = 0, orbit_elevation_deg: float = 20.0, light: list[float] = [],  # noqa: B006
+           light_intensity: float = 1.0, base_color: list[float] = [], roughness: float | None = None,  # noqa: B006
+           metallic: float | None = None, subsurface: float | None = None, size: int | None = None,
+           device: str = "auto") -> None:
+    """Render a trained scene from data cameras or an orbit, under any point light(s), with material edits.
+
+    Args:
+        run: training run folder.
+        out: output folder for PNGs (and orbit.gif).
+        data: data folder whose cameras (and first light) to use; default: the run's training data.
+        split: split of --data whose cameras --views index.
+        views: lattice view indices of --split to render (default: all).
+        orbit: render an orbit of N frames around the object instead (writes orbit.gif).
+        orbit_elevation_deg: elevation of the orbit.
+        light: light position(s) x y z [x y z ...] (several lights are summed); default: each view's
+            first light in the data.
+        light_intensity: RGB intensity (grey) of each given light.
+        base_color: override the base colour (r g b, linear) of every Gaussian.
+        roughness: override the roughness.
+        metallic: override the metalness.
+        subsurface: override the subsurfaceness s.
+        size: image size of orbit frames (default: the data's width).
+        device: auto | cpu | cuda.
+    """
+    from diamond_sss.training.run import render_run
+
+    overrides = {k: v for k, v in (("base_color", base_color or None), ("roughness", roughness),
+                                   ("metallic", metallic), ("subsurface", subsurface)) if v is not None}
+    written = render_run(run, out, data=data, split=split, views=views, orbit=orbit,
+                         orbit_elevation_deg=orbit_elevation_deg, lights=light, light_intensity=light_intensity,
+                         overrides=overrides, size=size, device=device)
+    Console().print(f"wrote {len(written)} files to {out}")
+
+
+def export(run: Path, ply: Path) -> None:
+    """Export a trained scene as a PLY with every attribute plus the standard 3DGS fields.
+
+    Args:
+        run: training run folder.
+        ply: output .ply path (opens in common 3DGS viewers; colour from the base colour).
+    """
+    from diamond_sss.gaussians.ply import export_ply
+    from diamond_sss.training.trainer import load_scene
+
+    scene, _ = load_scene(run)
+    export_ply(scene.gaussians, ply)
+    Console().print(f"{scene.gaussians.num_gaussians} Gaussians -> {ply}")

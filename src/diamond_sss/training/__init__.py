@@ -1,0 +1,1 @@
+"""Reconstruction: configuration and presets, the training loop, checkpoints, run-level jobs."""

@@ -1,0 +1,125 @@
+"""Atomic training checkpoints: scene tensors, optimiser states and densification state (safetensors + JSON).
+
+Layout of ``<run>/checkpoints``::
+
+    step_000500/scene.safetensors      raw Gaussian parameters, MLP weights, log light scale
+    step_000500/optim.safetensors      Adam moments of every optimiser, keyed ``<optimizer>/<slot>``
+    step_000500/strategy.safetensors   densification accumulators (when present)
+    step_000500/state.json             step, optimiser hyperparameters, strategy scalars
+    latest.json                        {"step": 500, "dir": "step_000500"}
+
+A checkpoint folder is written under a temporary name and renamed into place, then ``latest.json`` is
+replaced atomically, so a kill at any moment leaves the previous checkpoint usable.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
+
+KEEP_CHECKPOINTS = 2
+
+
+@dataclass
+class Checkpoint:
+    """A loaded checkpoint."""
+
+    step: int
+    scene: dict[str, Tensor]
+    optimizers: dict[str, dict]
+    strategy: dict
+    extra: dict
+
+
+def optimizer_to_tensors(name: str, optimizer: torch.optim.Optimizer) -> tuple[dict[str, Tensor], dict]:
+    """Split ``optimizer.state_dict()`` into tensors (for safetensors) and JSON-able hyperparameters."""
+    state = optimizer.state_dict()
+    tensors: dict[str, Tensor] = {}
+    scalars: dict[str, dict] = {}
+    for index, slots in state["state"].items():
+        for slot, value in slots.items():
+            key = f"{name}/{index}/{slot}"
+            if torch.is_tensor(value):
+                tensors[key] = value
+            else:
+                scalars[key] = value
+    return tensors, {"param_groups": state["param_groups"], "scalars": scalars}
+
+
+def optimizer_from_tensors(name: str, tensors: dict[str, Tensor], meta: dict) -> dict:
+    """Inverse of :func:`optimizer_to_tensors`: a state dict for ``optimizer.load_state_dict``."""
+    state: dict[int, dict] = {}
+    prefix = f"{name}/"
+    for key, value in tensors.items():
+        if key.startswith(prefix):
+            _, index, slot = key.split("/", 2)
+            state.setdefault(int(index), {})[slot] = value
+    for key, value in meta.get("scalars", {}).items():
+        _, index, slot = key.split("/", 2)
+        state.setdefault(int(index), {})[slot] = value
+    return {"state": state, "param_groups": meta["param_groups"]}
+
+
+def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
+                    optimizers: dict[str, torch.optim.Optimizer], strategy_state: dict, extra: dict) -> Path:
+    """Write checkpoint ``step`` atomically and keep the newest :data:`KEEP_CHECKPOINTS`."""
+    root = Path(run_dir) / "checkpoints"
+    root.mkdir(parents=True, exist_ok=True)
+    name = f"step_{step:07d}"
+    tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=root))
+    try:
+        atomic_save_safetensors(tmp / "scene.safetensors", scene_tensors)
+        optim_tensors: dict[str, Tensor] = {}
+        optim_meta: dict[str, dict] = {}
+        for opt_name, optimizer in optimizers.items():
+            tensors, meta = optimizer_to_tensors(opt_name, optimizer)
+            optim_tensors.update(tensors)
+            optim_meta[opt_name] = meta
+        atomic_save_safetensors(tmp / "optim.safetensors", optim_tensors)
+        strategy_tensors = {k: v for k, v in strategy_state.items() if torch.is_tensor(v)}
+        strategy_scalars = {k: v for k, v in strategy_state.items() if not torch.is_tensor(v) and v is not None}
+        if strategy_tensors:
+            atomic_save_safetensors(tmp / "strategy.safetensors", strategy_tensors)
+        atomic_write_json(tmp / "state.json", {"step": step, "optimizers": optim_meta,
+                                               "strategy": strategy_scalars, "extra": extra})
+        final = root / name
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    atomic_write_json(root / "latest.json", {"step": step, "dir": name})
+    for old in sorted(p for p in root.glob("step_*") if p.is_dir())[:-KEEP_CHECKPOINTS]:
+        shutil.rmtree(old)
+    return final
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    """Folder of the newest complete checkpoint, or None."""
+    pointer = Path(run_dir) / "checkpoints" / "latest.json"
+    if not pointer.is_file():
+        return None
+    folder = pointer.parent / json.loads(pointer.read_text())["dir"]
+    return folder if (folder / "state.json").is_file() else None
+
+
+def load_checkpoint(folder: Path) -> Checkpoint:
+    """Read a checkpoint folder written by :func:`save_checkpoint`."""
+    meta = json.loads((folder / "state.json").read_text())
+    optim_tensors = load_safetensors(folder / "optim.safetensors")
+    optimizers = {name: optimizer_from_tensors(name, optim_tensors, m) for name, m in meta["optimizers"].items()}
+    strategy = dict(meta.get("strategy", {}))
+    if (folder / "strategy.safetensors").is_file():
+        strategy.update(load_safetensors(folder / "strategy.safetensors"))
+    return Checkpoint(step=int(meta["step"]), scene=load_safetensors(folder / "scene.safetensors"),
+                      optimizers=optimizers, strategy=strategy, extra=meta.get("extra", {}))

@@ -1,0 +1,78 @@
+"""The training objective L_total (supplement Eq. A.1-A.7, method.md §4-§5), assembled from the pure terms.
+
+    L_total = [(1 - l_dssim) L1 + l_dssim (1 - SSIM)]_w + l_lpips LPIPS_w + l_mask L_mask
+              + l_mask_entropy H(alpha) + sum_q l_smooth^q L_smooth^q + l_enh L_enh + l_base_color L_bc
+              + l_normal L_normals + l_incident L_incident + l_visibility L_raytrace
+              + l_sil L_sil^MV + l_depth L_depth^MV
+
+``[.]_w``: per-image weighted (1 for real images, ``synthetic_weight`` = alpha for generated ones). All image
+terms compare linear radiance; LPIPS compares sRGB. Geometric terms (mask, normals, multi-view) use every
+image at full weight.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from diamond_sss.data.conventions import linear_to_srgb
+from diamond_sss.losses import photometric, regularizers
+from diamond_sss.losses.lpips import LPIPS
+from diamond_sss.losses.photometric import weighted_mean
+from diamond_sss.rendering.relightable import SceneRender
+from diamond_sss.training.config import TrainConfig
+
+SMOOTHED_ATTRIBUTES = {
+    "base_color": "lambda_base_color_smooth",
+    "roughness": "lambda_roughness_smooth",
+    "metallic": "lambda_metallic_smooth",
+    "subsurface": "lambda_subsurfacedness_smooth",
+}
+
+
+@dataclass
+class TargetBatch:
+    """Ground truth of a batch: linear RGB ``[B,H,W,3]``, masks ``[B,H,W,1]``, per-image weights ``[B]``."""
+
+    rgb: Tensor
+    mask: Tensor
+    weights: Tensor
+    viewmats: Tensor
+    Ks: Tensor
+
+
+def image_objective(render: SceneRender, target: TargetBatch, cfg: TrainConfig,
+                    lpips_model: LPIPS | None) -> dict[str, Tensor]:
+    """Weighted loss terms of one batch (each already multiplied by its lambda), by name."""
+    terms: dict[str, Tensor] = {}
+    pred = render.radiance
+    terms["photometric"] = photometric.photometric_loss(pred, target.rgb, cfg.lambda_dssim, target.weights)
+    if lpips_model is not None and cfg.lambda_lpips > 0:
+        distance = lpips_model(linear_to_srgb(pred), linear_to_srgb(target.rgb))
+        terms["lpips"] = cfg.lambda_lpips * weighted_mean(distance, target.weights)
+    gb = render.gbuffer
+    mask = target.mask
+    if cfg.lambda_mask > 0:
+        terms["mask"] = cfg.lambda_mask * regularizers.mask_bce_loss(gb.alpha, mask)
+    if cfg.lambda_mask_entropy > 0:
+        terms["mask_entropy"] = cfg.lambda_mask_entropy * regularizers.mask_entropy_loss(gb.alpha)
+    for name, key in SMOOTHED_ATTRIBUTES.items():
+        weight = getattr(cfg, key)
+        if weight > 0:
+            terms[f"smooth_{name}"] = weight * regularizers.bilateral_smoothness_loss(
+                getattr(gb, name), target.rgb, mask)
+    if cfg.lambda_enh > 0:
+        terms["enhance"] = cfg.lambda_enh * regularizers.enhancement_loss(gb.base_color, target.rgb, mask)
+    if cfg.lambda_base_color > 0:
+        terms["base_color"] = cfg.lambda_base_color * regularizers.base_color_prior_loss(
+            gb.base_color, target.rgb, mask)
+    if cfg.lambda_normal > 0:
+        pseudo = regularizers.normals_from_depth(gb.depth, target.viewmats, target.Ks)
+        terms["normal"] = cfg.lambda_normal * regularizers.normal_consistency_loss(
+            torch.nn.functional.normalize(gb.normal, dim=-1), pseudo, mask * (gb.alpha.detach() > 0.5))
+    if cfg.lambda_incident_light > 0:
+        terms["incident"] = cfg.lambda_incident_light * regularizers.incident_light_loss(
+            gb.incident, gb.visibility, mask)
+    return terms

@@ -1,0 +1,439 @@
+"""The SSS-3DGS / DIAMOND-SSS reconstruction loop.
+
+One step: draw ``B`` (view, light) images (a pure function of the step, so resumed runs see the same
+batches), render them with deferred shading, add the objective's terms (photometric, regularisers,
+ray-traced visibility every ``raytrace_every`` steps, multi-view consistency), back-propagate, step Adam,
+and let gsplat's ``DefaultStrategy`` densify and prune (or keep the Gaussian count fixed).
+Every random draw of step ``t`` comes from generators seeded with ``(seed, t)``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from gsplat.strategy import DefaultStrategy
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from diamond_sss.data.conventions import linear_to_srgb
+from diamond_sss.data.dataset import OLATDataset, seeded_epoch_indices
+from diamond_sss.gaussians.init import initial_points
+from diamond_sss.gaussians.model import GaussianModel
+from diamond_sss.losses.lpips import load_lpips
+from diamond_sss.losses.multiview import MultiViewConfig, multiview_losses_batched, sample_foreground_pixels
+from diamond_sss.losses.regularizers import raytrace_visibility_loss
+from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.shading.raytrace import raytraced_visibility
+from diamond_sss.shading.sh import visibility_from_sh
+from diamond_sss.training.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from diamond_sss.training.config import TrainConfig
+from diamond_sss.training.objective import TargetBatch, image_objective
+from diamond_sss.training.schedules import exponential_lr, step_decay
+from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
+
+logger = logging.getLogger(__name__)
+
+GAUSSIAN_LR_KEYS = {
+    "scales": "scaling_lr",
+    "quats": "rotation_lr",
+    "opacities": "opacity_lr",
+    "normals": "normal_lr",
+    "base_color": "base_color_lr",
+    "roughness": "roughness_lr",
+    "metallic": "metallic_lr",
+    "subsurface": "subsurfacedness_lr",
+    "visibility_sh": "visibility_lr",
+}
+
+
+@dataclass
+class ImageSource:
+    """A data set whose images train the scene with a photometric weight (1 real, alpha synthetic)."""
+
+    dataset: OLATDataset
+    weight: float = 1.0
+
+
+@dataclass
+class TrainResult:
+    """What a finished run reports."""
+
+    steps: int
+    seconds: float
+    num_gaussians: int
+    final_loss: float
+    history: list[dict] = field(default_factory=list)
+
+
+def gaussian_optimizers(optimizers: dict[str, torch.optim.Optimizer]) -> dict[str, torch.optim.Optimizer]:
+    """The per-Gaussian-parameter optimisers (what gsplat's strategies edit when they densify or prune)."""
+    return {name: optimizers[name] for name in ("means", *GAUSSIAN_LR_KEYS)}
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> CUDA when available, else CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("config 'device' asks for CUDA but torch.cuda.is_available() is False")
+    return device
+
+
+def step_generator(seed: int, step: int, stream: int) -> torch.Generator:
+    """A CPU generator for random stream ``stream`` of step ``step``."""
+    return torch.Generator().manual_seed((seed * 1_000_003 + step) * 16 + stream)
+
+
+class Trainer:
+    """Reconstructs a relightable scene from one or more image sources sharing a lattice of cameras/lights.
+
+    Args:
+        cfg: the resolved configuration.
+        sources: image sources; the first is the real capture and defines the lattice.
+        run_dir: output folder (checkpoints, TensorBoard, model, config).
+        show_progress: show a tqdm bar.
+    """
+
+    def __init__(self, cfg: TrainConfig, sources: list[ImageSource], run_dir: Path,
+                 show_progress: bool = True) -> None:
+        if not sources or len(sources[0].dataset) == 0:
+            raise ValueError("training needs at least one image")
+        self.cfg = cfg
+        self.sources = sources
+        self.lattice = sources[0].dataset
+        self.run_dir = Path(run_dir)
+        self.show_progress = show_progress
+        self.device = resolve_device(cfg.device)
+        self.index = [(s, i) for s, source in enumerate(sources) for i in range(len(source.dataset))]
+        self.bounds = self.lattice.bounds
+        self.viewmats = self.lattice.viewmats.to(self.device)
+        self.Ks = self.lattice.intrinsics.to(self.device)
+        self.light_positions = self.lattice.light_positions.to(self.device)
+        self.light_intensities = self.lattice.light_intensities.to(self.device)
+        self.width, self.height = self.lattice.width, self.lattice.height
+        self.view_silhouettes = self._view_silhouettes()
+        self.lpips = load_lpips(cfg.lpips_weights or None) if cfg.lambda_lpips > 0 else None
+        if self.lpips is not None:
+            self.lpips = self.lpips.to(self.device)
+        self.mv_cfg = MultiViewConfig(
+            pairs_per_step=cfg.mv_pairs_per_step, pixels_per_pair=cfg.mv_pixels_per_pair,
+            target_mode=cfg.mv_target_mode, nearest_k=cfg.mv_nearest_k, sil_threshold=cfg.mv_sil_threshold,
+            occlusion_tol=cfg.mv_occlusion_tol,
+            charbonnier_eps=cfg.mv_charbonnier_eps if cfg.mv_charbonnier_eps > 0 else None,
+        )
+        self.strategy = DefaultStrategy(
+            prune_opa=0.005, grow_grad2d=cfg.densify_grad_threshold, grow_scale3d=cfg.percent_dense,
+            refine_start_iter=cfg.densify_from_iter, refine_stop_iter=cfg.densify_until_iter,
+            reset_every=cfg.opacity_reset_interval, refine_every=cfg.densification_interval, verbose=False,
+        ) if cfg.densify else None
+
+    # ------------------------------------------------------------------ set-up
+    def _view_silhouettes(self) -> dict[int, Tensor]:
+        """Ground-truth mask of every view that has an image in any source (light-independent)."""
+        masks: dict[int, Tensor] = {}
+        for source in self.sources:
+            for index, obs in enumerate(source.dataset.observations):
+                if obs.view not in masks:
+                    masks[obs.view] = source.dataset.load(index).mask[..., 0].to(self.device)
+        return masks
+
+    def build_scene(self) -> RelightableScene:
+        """Initial Gaussians (points3d.ply, visual hull of the training masks, or random) and a fresh MLP."""
+        cfg = self.cfg
+        torch.manual_seed(cfg.seed)
+        generator = torch.Generator().manual_seed(cfg.seed)
+        views = sorted(self.view_silhouettes)
+        use_ply = cfg.init in ("auto", "ply")
+        use_hull = cfg.init in ("auto", "hull")
+        ply = self.lattice.root / "points3d.ply"
+        if cfg.init == "ply" and not ply.is_file():
+            raise ValueError(f"config init='ply' but {ply} does not exist")
+        points = initial_points(
+            num_points=cfg.num_gaussians, bounds_center=self.bounds.center, bounds_radius=self.bounds.radius,
+            points3d_path=ply if use_ply else None,
+            masks=torch.stack([self.view_silhouettes[v].cpu() for v in views]) if use_hull else None,
+            w2c=self.lattice.viewmats[views] if use_hull else None,
+            K=self.lattice.intrinsics[views] if use_hull else None,
+            generator=generator,
+        )
+        self.init_source = points.source
+        model = GaussianModel.from_points(points.points, points.colors, points.normals, generator=generator)
+        return RelightableScene(model, sss_width=cfg.sss_width, light_init=cfg.light_init,
+                                scene_center=self.bounds.center, scene_radius=self.bounds.radius,
+                                mixed_precision=cfg.mixed_precision).to(self.device)
+
+    def build_optimizers(self, scene: RelightableScene) -> dict[str, torch.optim.Optimizer]:
+        """One Adam per Gaussian parameter (the layout gsplat's strategies need), the MLP and the light."""
+        cfg = self.cfg
+        params = scene.gaussians.params
+        optimizers: dict[str, torch.optim.Optimizer] = {
+            "means": torch.optim.Adam([params["means"]], lr=cfg.position_lr_init * self.bounds.radius,
+                                      eps=1e-15),
+        }
+        for name, key in GAUSSIAN_LR_KEYS.items():
+            optimizers[name] = torch.optim.Adam([params[name]], lr=getattr(cfg, key), eps=1e-15)
+        optimizers["mlp"] = torch.optim.Adam(scene.mlp.parameters(), lr=cfg.sss_lr)
+        optimizers["light"] = torch.optim.Adam([scene.log_light_scale], lr=cfg.light_lr)
+        return optimizers
+
+    def set_learning_rates(self, optimizers: dict[str, torch.optim.Optimizer], step: int) -> None:
+        cfg = self.cfg
+        decay = step_decay(step, cfg.lr_decay_step, cfg.lr_decay_factor)
+        rates = {name: getattr(cfg, key) * decay for name, key in GAUSSIAN_LR_KEYS.items()}
+        rates["means"] = self.bounds.radius * exponential_lr(
+            step, cfg.position_lr_init, cfg.position_lr_final, cfg.position_lr_max_steps,
+            cfg.position_lr_delay_steps, cfg.position_lr_delay_mult)
+        rates["mlp"] = cfg.sss_lr * decay
+        rates["light"] = cfg.light_lr * decay
+        for name, optimizer in optimizers.items():
+            for group in optimizer.param_groups:
+                group["lr"] = rates[name]
+
+    # ------------------------------------------------------------------ one step
+    def draw_batch(self, step: int) -> tuple[list[tuple[int, int]], TargetBatch, Tensor, Tensor]:
+        """The step's images: (source, observation) pairs, targets, light positions and intensities."""
+        cfg = self.cfg
+        generator = step_generator(cfg.seed, step, 0)
+        picks = [self.index[i] for i in seeded_epoch_indices(step, cfg.batch_size, len(self.index), cfg.seed)]
+        rgbs, masks, weights, views, lights = [], [], [], [], []
+        for source_index, obs_index in picks:
+            source = self.sources[source_index]
+            sample = source.dataset.load(obs_index)
+            rgbs.append(sample.rgb)
+            masks.append(sample.mask)
+            weights.append(source.weight)
+            views.append(sample.view)
+            lights.append(sample.light)
+        rgb = torch.stack(rgbs).to(self.device)
+        mask = torch.stack(masks).to(self.device)
+        if cfg.random_background:
+            background = torch.rand(len(picks), 1, 1, 3, generator=generator).to(self.device)
+            rgb = rgb + (1.0 - mask) * background
+        views_t = torch.tensor(views, device=self.device)
+        lights_t = torch.tensor(lights, device=self.device)
+        target = TargetBatch(rgb=rgb, mask=mask, weights=torch.tensor(weights, device=self.device),
+                             viewmats=self.viewmats[views_t], Ks=self.Ks[views_t])
+        self._batch_views = views
+        return picks, target, self.light_positions[lights_t], self.light_intensities[lights_t]
+
+    def raytrace_term(self, scene: RelightableScene, light_positions: Tensor, step: int) -> Tensor:
+        """Eq. A.7 on a random subset of Gaussians: towards the batch's lights and random directions."""
+        cfg = self.cfg
+        g = scene.gaussians
+        generator = step_generator(cfg.seed, step, 1)
+        count = min(cfg.raytrace_gaussians, g.num_gaussians)
+        subset = torch.randperm(g.num_gaussians, generator=generator)[:count].to(self.device)
+        with torch.no_grad():
+            traced = raytraced_visibility(g.means.detach(), g.quats.detach(), g.scales.detach(),
+                                          g.opacities.detach(), light_positions, num_samples=cfg.raytrace_directions,
+                                          generator=generator, normals=g.normals.detach(), sources=subset)
+        predicted = visibility_from_sh(g.visibility_sh[subset][:, None, :], traced.dirs)
+        return cfg.lambda_visibility * raytrace_visibility_loss(predicted, traced.visibility)
+
+    def multiview_terms(self, scene: RelightableScene, render, target: TargetBatch,
+                        step: int) -> dict[str, Tensor]:
+        """Silhouette and depth consistency between batch views (sources) and nearby lattice views."""
+        cfg = self.cfg
+        generator = step_generator(cfg.seed, step, 2)
+        candidates = torch.arange(self.lattice.num_views) if cfg.mv_include_unobserved_views else torch.tensor(
+            sorted(self.view_silhouettes))
+        centers = self.lattice.camera_centers
+        sources, targets = [], []
+        for _ in range(cfg.mv_pairs_per_step):
+            b = int(torch.randint(len(self._batch_views), (1,), generator=generator))
+            view = self._batch_views[b]
+            pool = candidates[candidates != view]
+            if pool.numel() == 0:
+                continue
+            if cfg.mv_target_mode == "nearest-k":
+                distance = (centers[pool] - centers[view]).norm(dim=-1)
+                pool = pool[torch.argsort(distance, stable=True)[: cfg.mv_nearest_k]]
+            sources.append(b)
+            targets.append(int(pool[torch.randint(pool.numel(), (1,), generator=generator)]))
+        if not sources:
+            return {}
+        tgt = torch.tensor(targets, device=self.device)
+        geometry = scene.render_geometry(self.viewmats[tgt], self.Ks[tgt], self.width, self.height)
+        tgt_depth, tgt_alpha = geometry.depth[..., 0], geometry.alpha[..., 0]
+        silhouettes = torch.stack([
+            self.view_silhouettes[t] if t in self.view_silhouettes else tgt_alpha[p].detach()
+            for p, t in enumerate(targets)
+        ])
+        src = torch.tensor(sources, device=self.device)
+        uv_list = [sample_foreground_pixels(target.mask[b, ..., 0], cfg.mv_pixels_per_pair, generator)
+                   for b in sources]
+        count = max(1, max(uv.shape[0] for uv in uv_list))
+        uv = torch.full((len(sources), count, 2), 0.5, device=self.device)
+        valid = torch.zeros(len(sources), count, dtype=torch.bool, device=self.device)
+        for p, pixels in enumerate(uv_list):
+            uv[p, : pixels.shape[0]] = pixels.to(self.device)
+            valid[p, : pixels.shape[0]] = True
+        terms = multiview_losses_batched(
+            render.gbuffer.depth[src, ..., 0], render.gbuffer.alpha[src, ..., 0], uv, target.viewmats[src],
+            target.Ks[src], tgt_depth, tgt_alpha, silhouettes, self.viewmats[tgt], self.Ks[tgt],
+            self.bounds.near, self.bounds.far, self.mv_cfg, src_uv_valid=valid,
+        )
+        out = {}
+        if cfg.lambda_sil > 0:
+            out["mv_silhouette"] = cfg.lambda_sil * terms.silhouette
+        if cfg.lambda_depth > 0:
+            out["mv_depth"] = cfg.lambda_depth * terms.depth
+        return out
+
+    def training_step(self, scene: RelightableScene, optimizers: dict[str, torch.optim.Optimizer],
+                      strategy_state: dict, step: int) -> dict[str, float]:
+        """One optimisation step; returns the loss terms (floats)."""
+        cfg = self.cfg
+        torch.manual_seed(cfg.seed * 1_000_003 + step)
+        self.set_learning_rates(optimizers, step)
+        _, target, light_pos, light_rgb = self.draw_batch(step)
+        render = scene.render(target.viewmats, target.Ks, self.width, self.height, light_pos, light_rgb)
+        info = render.raster.info
+        if self.strategy is not None:
+            self.strategy.step_pre_backward(scene.gaussians.params, gaussian_optimizers(optimizers),
+                                            strategy_state, step, info)
+        terms = image_objective(render, target, cfg, self.lpips)
+        if cfg.lambda_visibility > 0 and step % cfg.raytrace_every == 0:
+            terms["raytrace"] = self.raytrace_term(scene, light_pos, step)
+        if cfg.lambda_sil > 0 or cfg.lambda_depth > 0:
+            terms.update(self.multiview_terms(scene, render, target, step))
+        total = torch.stack(list(terms.values())).sum()
+        if not torch.isfinite(total):
+            raise FloatingPointError(f"loss is {float(total)} at step {step}: terms "
+                                     f"{ {k: float(v) for k, v in terms.items()} }")
+        total.backward()
+        for optimizer in optimizers.values():
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+        if self.strategy is not None and scene.gaussians.num_gaussians < cfg.max_gaussians:
+            self.strategy.step_post_backward(scene.gaussians.params, gaussian_optimizers(optimizers),
+                                             strategy_state, step, info, packed=False)
+        values = {k: float(v.detach()) for k, v in terms.items()}
+        values["total"] = float(total.detach())
+        return values
+
+    # ------------------------------------------------------------------ the loop
+    def run(self, resume: bool = False) -> TrainResult:
+        """Train for ``cfg.iterations`` steps (continuing from the newest checkpoint when ``resume``)."""
+        cfg = self.cfg
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
+        start_step = 0
+        checkpoint = latest_checkpoint(self.run_dir) if resume else None
+        if checkpoint is not None:
+            loaded = load_checkpoint(checkpoint)
+            scene = scene_from_tensors(loaded.scene, cfg).to(self.device)
+            optimizers = self.build_optimizers(scene)
+            for name, optimizer in optimizers.items():
+                optimizer.load_state_dict(loaded.optimizers[name])
+            strategy_state = self._initial_strategy_state()
+            strategy_state.update({k: (v.to(self.device) if torch.is_tensor(v) else v)
+                                   for k, v in loaded.strategy.items()})
+            start_step = loaded.step
+            self.init_source = loaded.extra.get("init_source", "checkpoint")
+            history = loaded.extra.get("history", [])
+            elapsed = float(loaded.extra.get("seconds", 0.0))
+        else:
+            scene = self.build_scene()
+            optimizers = self.build_optimizers(scene)
+            strategy_state = self._initial_strategy_state()
+            history, elapsed = [], 0.0
+        if self.strategy is not None:
+            self.strategy.check_sanity(scene.gaussians.params, gaussian_optimizers(optimizers))
+        writer = _summary_writer(self.run_dir / "tb")
+        started = time.perf_counter() - elapsed
+        values: dict[str, float] = {"total": float("nan")}
+        bar = tqdm(range(start_step, cfg.iterations), initial=start_step, total=cfg.iterations,
+                   disable=not self.show_progress, desc="train", dynamic_ncols=True)
+        for step in bar:
+            values = self.training_step(scene, optimizers, strategy_state, step)
+            done = step + 1
+            if done % cfg.log_every == 0 or done == cfg.iterations:
+                record = {"step": done, "gaussians": scene.gaussians.num_gaussians,
+                          "light_scale": float(scene.light_scale.detach()), **values}
+                history.append(record)
+                bar.set_postfix(loss=f"{values['total']:.4f}", n=scene.gaussians.num_gaussians)
+                if writer is not None:
+                    for key, value in record.items():
+                        if key != "step":
+                            writer.add_scalar(f"train/{key}", value, done)
+            if writer is not None and (done % cfg.image_log_every == 0 or done == cfg.iterations):
+                self._log_images(writer, scene, done)
+            if done % cfg.checkpoint_every == 0 and done < cfg.iterations:
+                save_checkpoint(self.run_dir, done, scene_tensors(scene), optimizers, strategy_state,
+                                {"init_source": self.init_source, "history": history,
+                                 "seconds": time.perf_counter() - started})
+        seconds = time.perf_counter() - started
+        if writer is not None:
+            writer.close()
+        save_scene(self.run_dir / "model.safetensors", scene)
+        result = TrainResult(steps=cfg.iterations, seconds=seconds, num_gaussians=scene.gaussians.num_gaussians,
+                             final_loss=values["total"], history=history)
+        atomic_write_json(self.run_dir / "train_summary.json", {
+            "steps": result.steps, "seconds": round(result.seconds, 3), "num_gaussians": result.num_gaussians,
+            "final_loss": result.final_loss, "init_source": self.init_source, "device": str(self.device),
+            "images": {f"source_{i}": len(s.dataset) for i, s in enumerate(self.sources)},
+            "history": history,
+        })
+        self.scene = scene
+        return result
+
+    def _initial_strategy_state(self) -> dict:
+        if self.strategy is None:
+            return {}
+        return self.strategy.initialize_state(scene_scale=self.bounds.radius)
+
+    @torch.no_grad()
+    def _log_images(self, writer, scene: RelightableScene, step: int) -> None:
+        obs = self.lattice.observations[0]
+        render = scene.render(self.viewmats[obs.view][None], self.Ks[obs.view][None], self.width, self.height,
+                              self.light_positions[obs.light][None], self.light_intensities[obs.light][None])
+        gt = self.lattice.load(0).rgb.to(self.device)
+        panel = torch.cat([linear_to_srgb(gt), linear_to_srgb(render.radiance[0])], dim=1)
+        writer.add_image("train/gt_render", panel.clamp(0, 1).cpu(), step, dataformats="HWC")
+
+
+def _summary_writer(path: Path):
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        logger.warning("tensorboard is not installed: no TensorBoard logs")
+        return None
+    return SummaryWriter(str(path))
+
+
+def scene_tensors(scene: RelightableScene) -> dict[str, Tensor]:
+    """All scene tensors by ``state_dict`` name (Gaussians, MLP, light scale)."""
+    return {k: v.detach() for k, v in scene.state_dict().items()}
+
+
+def scene_from_tensors(tensors: dict[str, Tensor], cfg: TrainConfig) -> RelightableScene:
+    """Rebuild a scene from :func:`scene_tensors` (Gaussian count taken from the tensors)."""
+    prefix = "gaussians.params."
+    model = GaussianModel.from_state_tensors({k[len(prefix):]: v for k, v in tensors.items()
+                                              if k.startswith(prefix)})
+    scene = RelightableScene(model, sss_width=cfg.sss_width, light_init=cfg.light_init,
+                             mixed_precision=cfg.mixed_precision)
+    scene.load_state_dict(tensors)
+    return scene
+
+
+def save_scene(path: Path, scene: RelightableScene) -> Path:
+    """The trained scene as one safetensors file."""
+    return atomic_save_safetensors(path, scene_tensors(scene), metadata={"format": "diamond-sss-scene-v1"})
+
+
+def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[RelightableScene, TrainConfig]:
+    """The trained scene and configuration of a run folder."""
+    from diamond_sss.training.config import load_run_config
+
+    cfg = load_run_config(run_dir)
+    path = Path(run_dir) / "model.safetensors"
+    if not path.is_file():
+        raise ValueError(f"{run_dir}: no trained model ({path} is missing; is the run finished?)")
+    return scene_from_tensors(load_safetensors(path), cfg).to(device), cfg

@@ -1,0 +1,175 @@
+"""Training: config presets and overrides, schedules, checkpoints, resume, the CLI end to end."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from capture_factory import make_capture
+from diamond_sss.cli.main import main
+from diamond_sss.data import OLATDataset
+from diamond_sss.evaluation.evaluate import evaluate_scene
+from diamond_sss.gaussians.ply import import_ply
+from diamond_sss.training.checkpoint import optimizer_from_tensors, optimizer_to_tensors
+from diamond_sss.training.config import PRESETS, TrainConfig, make_config
+from diamond_sss.training.schedules import exponential_lr, step_decay
+from diamond_sss.training.trainer import ImageSource, Trainer, load_scene
+from diamond_sss.utils.io import load_safetensors
+
+TINY = {
+    "num_gaussians": 300, "batch_size": 2, "lambda_lpips": 0.0, "raytrace_gaussians": 64, "raytrace_every": 2,
+    "mv_pixels_per_pair": 32, "mv_pairs_per_step": 1, "densify_from_iter": 1, "densification_interval": 2,
+    "densify_until_iter": 100, "opacity_reset_interval": 5, "log_every": 1, "image_log_every": 1000,
+    "device": "cpu",
+}
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    root = tmp_path_factory.mktemp("capture")
+    make_capture(root, views=6, lights=3, size=16)
+    make_capture(root, views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
+    return root
+
+
+def test_presets_follow_the_supplement():
+    best = make_config("diamond")
+    original = make_config("sss3dgs")
+    # Tab. 4, "Best" and "Original"
+    assert (best.lambda_dssim, best.lambda_lpips, best.lambda_normal) == (0.492, 0.171, 0.037)
+    assert (original.lambda_dssim, original.lambda_lpips, original.lambda_normal) == (0.2, 0.2, 0.02)
+    assert (best.densify_until_iter, original.densify_until_iter) == (10_000, 15_000)
+    assert (best.densify_grad_threshold, original.densify_grad_threshold) == (0.001, 0.0002)
+    assert (best.opacity_reset_interval, original.opacity_reset_interval) == (1_000, 3_000)
+    assert (best.lambda_sil, best.lambda_depth, original.lambda_sil, original.lambda_depth) == (0.5, 0.3, 0, 0)
+    # Tab. 3
+    assert (best.position_lr_init, best.position_lr_final, best.position_lr_max_steps) == (0.00016, 1.6e-6, 30_000)
+    assert (best.opacity_lr, best.scaling_lr, best.sss_width, best.light_init) == (0.05, 0.005, 32, -1.0)
+    assert set(PRESETS["sss3dgs"]) <= set(TrainConfig().to_dict())
+
+
+def test_overrides_sets_and_config_files(tmp_path):
+    cfg = make_config("sss3dgs", sets=["lambda_dssim=0.3", "densify=false", "iterations=1e3"])
+    assert (cfg.lambda_dssim, cfg.densify, cfg.iterations) == (0.3, False, 1000)
+    path = tmp_path / "best.json"
+    path.write_text(json.dumps({"lambda_normal": 0.05, "densification_interval": 120}))
+    cfg = make_config("diamond", config_file=path, sets=["lambda_normal=0.06"])
+    assert (cfg.lambda_normal, cfg.densification_interval) == (0.06, 120)
+    with pytest.raises(ValueError, match="unknown config key 'lambda_dsim'"):
+        make_config(sets=["lambda_dsim=0.3"])
+    with pytest.raises(ValueError, match="'iterations' expects int, got '1.5'"):
+        make_config(sets=["iterations=1.5"])
+    with pytest.raises(ValueError, match="--set expects key=value"):
+        make_config(sets=["lambda_dssim"])
+    with pytest.raises(ValueError, match="'lambda_mask' must be >= 0"):
+        make_config(sets=["lambda_mask=-1"])
+    path.write_text(json.dumps({"lambda_normal": "high"}))
+    with pytest.raises(ValueError, match=r"best.json: config key 'lambda_normal' expects float"):
+        make_config(config_file=path)
+    with pytest.raises(ValueError, match="unknown preset"):
+        make_config("fast")
+
+
+def test_exponential_lr_schedule():
+    assert exponential_lr(0, 1e-2, 1e-4, 100) == pytest.approx(1e-2)
+    assert exponential_lr(100, 1e-2, 1e-4, 100) == pytest.approx(1e-4)
+    assert exponential_lr(500, 1e-2, 1e-4, 100) == pytest.approx(1e-4)
+    assert exponential_lr(50, 1e-2, 1e-4, 100) == pytest.approx(1e-3)  # geometric mean halfway
+    assert exponential_lr(0, 1e-2, 1e-4, 100, delay_steps=10, delay_mult=0.01) == pytest.approx(1e-4)
+    assert exponential_lr(10, 1e-2, 1e-4, 100, delay_steps=10, delay_mult=0.01) == pytest.approx(
+        math.exp(0.9 * math.log(1e-2) + 0.1 * math.log(1e-4)))
+    assert (step_decay(49_999, 50_000, 0.1), step_decay(50_000, 50_000, 0.1)) == (1.0, 0.1)
+
+
+def test_optimizer_state_round_trip():
+    param = torch.nn.Parameter(torch.randn(5, 3))
+    optimizer = torch.optim.Adam([param], lr=0.1)
+    param.grad = torch.randn(5, 3)
+    optimizer.step()
+    tensors, meta = optimizer_to_tensors("means", optimizer)
+    restored_opt = torch.optim.Adam([torch.nn.Parameter(param.detach().clone())], lr=0.5)
+    restored_opt.load_state_dict(optimizer_from_tensors("means", tensors, json.loads(json.dumps(meta))))
+    assert restored_opt.param_groups[0]["lr"] == 0.1
+    assert torch.equal(restored_opt.state_dict()["state"][0]["exp_avg"], optimizer.state_dict()["state"][0]["exp_avg"])
+
+
+class _Killed(RuntimeError):
+    pass
+
+
+class _KilledTrainer(Trainer):
+    """Dies at step ``kill_at`` (after the checkpoint of the previous step was written)."""
+
+    kill_at = 4
+
+    def training_step(self, scene, optimizers, strategy_state, step):
+        if step == self.kill_at:
+            raise _Killed()
+        return super().training_step(scene, optimizers, strategy_state, step)
+
+
+def test_resume_after_a_kill_matches_an_uninterrupted_run(capture, tmp_path):
+    cfg = make_config("diamond", overrides={**TINY, "iterations": 6, "checkpoint_every": 2})
+    dataset = OLATDataset(capture)
+    straight = Trainer(cfg, [ImageSource(dataset)], tmp_path / "a", show_progress=False)
+    straight.run()
+    with pytest.raises(_Killed):
+        _KilledTrainer(cfg, [ImageSource(dataset)], tmp_path / "b", show_progress=False).run()
+    assert (tmp_path / "b" / "checkpoints" / "latest.json").is_file()
+    resumed = Trainer(cfg, [ImageSource(dataset)], tmp_path / "b", show_progress=False)
+    resumed.run(resume=True)
+    a = load_safetensors(tmp_path / "a" / "model.safetensors")
+    b = load_safetensors(tmp_path / "b" / "model.safetensors")
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    history = json.loads((tmp_path / "b" / "train_summary.json").read_text())["history"]
+    assert [h["step"] for h in history] == [1, 2, 3, 4, 5, 6]
+
+
+def test_training_improves_the_fit(capture, tmp_path):
+    cfg = make_config("diamond", overrides={**TINY, "iterations": 30, "densify": False})
+    dataset = OLATDataset(capture)
+    trainer = Trainer(cfg, [ImageSource(dataset)], tmp_path / "run", show_progress=False)
+    before = evaluate_scene(trainer.build_scene(), dataset, show_progress=False).summary
+    result = trainer.run()
+    after = evaluate_scene(trainer.scene, dataset, show_progress=False).summary
+    assert after["psnr"] > before["psnr"] + 0.5
+    assert trainer.init_source == "visual_hull"
+    assert result.num_gaussians == 300  # densify=False keeps the count fixed
+    assert {"mv_silhouette", "mv_depth", "raytrace", "mask", "normal"} <= set(result.history[0])
+
+
+def test_densification_changes_the_gaussian_count(capture, tmp_path):
+    cfg = make_config("sss3dgs", overrides={**TINY, "iterations": 6, "densification_interval": 3,
+                                            "densify_grad_threshold": 1e-7})
+    result = Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False).run()
+    assert result.num_gaussians > 300
+
+
+def test_cli_train_eval_render_export(capture, tmp_path, capsys):
+    run = tmp_path / "run"
+    sets = [arg for key, value in TINY.items() for arg in ("--set", f"{key}={value}")]
+    main(["train", "--data", str(capture), "--out", str(run), "--regime", "views=50%,lights=all",
+          "--iterations", "3", "--quiet", *sets])
+    regime = json.loads((run / "regime.json").read_text())
+    assert len(regime["views"]) == 3 and regime["images"] == 9
+    assert json.loads((run / "config.json").read_text())["iterations"] == 3
+    capsys.readouterr()
+    main(["eval", "--run", str(run), "--data", str(capture), "--split", "test", "--json"])
+    metrics = json.loads(capsys.readouterr().out)
+    assert {"psnr", "ssim", "lpips", "masked_psnr", "mask_iou", "images"} <= set(metrics)
+    assert metrics["lpips"] is None and metrics["images"] == 4
+    assert (run / "eval_test" / "per_image.csv").read_text().count("\n") == 5
+    assert (run / "eval_test" / "comparison.png").is_file() and (run / "eval_test" / "decomposition.png").is_file()
+    main(["render", "--run", str(run), "--out", str(tmp_path / "frames"), "--views", "0", "1",
+          "--roughness", "0.2", "--light", "0", "0", "4", "4", "0", "0"])
+    assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == ["frame_0000.png", "frame_0001.png"]
+    main(["render", "--run", str(run), "--out", str(tmp_path / "orbit"), "--orbit", "3", "--size", "12"])
+    assert (tmp_path / "orbit" / "orbit.gif").is_file()
+    main(["export", "--run", str(run), "--ply", str(tmp_path / "scene.ply")])
+    scene, _ = load_scene(run)
+    assert import_ply(tmp_path / "scene.ply").num_gaussians == scene.gaussians.num_gaussians
