@@ -1,4 +1,4 @@
-"""Tiled pure-PyTorch Gaussian rasterizer (any device, differentiable by plain autograd).
+"""Tiled pure-PyTorch Gaussian rasterizer (any device; autograd, with an analytic backward for compositing).
 
 Same math as gsplat's CUDA rasterizer: for a pixel centre ``p`` and the depth-sorted Gaussians ``i`` whose
 bounding boxes overlap the pixel's tile,
@@ -12,6 +12,9 @@ and compositing stops before the first Gaussian that would bring the transmittan
 Every image is cut into ``tile_size x tile_size`` tiles; each tile keeps the list of Gaussians whose box
 overlaps it. Tiles are sorted by list length and processed in batches, each padded to its longest list,
 so the work is a handful of batched tensor operations instead of loops over Gaussians or pixels.
+The exponent ``ln o - q/2`` of all (pixel, Gaussian) pairs of a batch is one matrix product of a per-pixel
+quadratic basis with per-Gaussian coefficients, in tile-local coordinates to keep float32 cancellation small.
+The bounding boxes hold every contribution above 1/255, so the result does not depend on the tile size.
 """
 
 from __future__ import annotations
