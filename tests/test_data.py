@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from capture_factory import FOV_X, SPHERE_RADIUS, make_capture
+from diamond_sss.data.analytic import FOV_X, SPHERE_RADIUS, make_capture
 from diamond_sss.data import DataError, OLATDataset
 from diamond_sss.data.conventions import (
     camera_centers,

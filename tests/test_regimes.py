@@ -7,7 +7,7 @@ import json
 import pytest
 import torch
 
-from capture_factory import make_capture
+from diamond_sss.data.analytic import make_capture
 from diamond_sss.cli.main import main
 from diamond_sss.data import OLATDataset, select_regime
 from diamond_sss.data.dataset import directions_from

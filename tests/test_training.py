@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from capture_factory import make_capture
+from diamond_sss.data.analytic import make_capture
 from diamond_sss.cli.main import main
 from diamond_sss.data import OLATDataset
 from diamond_sss.evaluation.evaluate import evaluate_scene

@@ -1,4 +1,7 @@
-"""Writes small analytic OLAT captures (a Lambertian sphere) in both JSON variants, for data-layer tests."""
+"""Small analytic OLAT captures (a ray-cast Lambertian sphere) in both JSON variants, for tests and benchmarks.
+
+No renderer needed: every image is exact, so loaders, regimes and training can be checked in seconds.
+"""
 
 from __future__ import annotations
 
