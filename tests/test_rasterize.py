@@ -332,8 +332,8 @@ def test_packed_matches_unpacked():
     torch.testing.assert_close(dense.info["means2d"].grad[cams, ids], packed.info["means2d"].grad)
 
 
-@pytest.mark.parametrize("packed", [False, True])
-def test_default_strategy_runs_on_cpu(packed):
+@pytest.mark.parametrize(("packed", "absgrad"), [(False, False), (True, False), (True, True)])
+def test_default_strategy_runs_on_cpu(packed, absgrad):
     from gsplat.strategy import DefaultStrategy
 
     means, quats, scales, opacities, features, viewmats, Ks = _random_scene(50, 2, 3, seed=5)
@@ -347,7 +347,9 @@ def test_default_strategy_runs_on_cpu(packed):
         }
     )
     optimizers = {name: torch.optim.Adam([p], lr=1e-3) for name, p in params.items()}
-    strategy = DefaultStrategy(refine_start_iter=1, refine_every=2, grow_grad2d=1e-8, reset_every=1000)
+    strategy = DefaultStrategy(
+        refine_start_iter=1, refine_every=2, grow_grad2d=1e-8, reset_every=1000, absgrad=absgrad
+    )
     strategy.check_sanity(params, optimizers)
     state = strategy.initialize_state(scene_scale=1.0)
     target = torch.rand(2, 40, 56, 3, generator=torch.Generator().manual_seed(1))
@@ -355,7 +357,7 @@ def test_default_strategy_runs_on_cpu(packed):
     for step in range(3):
         out = rasterize(
             params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
-            params["colors"], viewmats, Ks, 56, 40, backend="cpu", packed=packed,
+            params["colors"], viewmats, Ks, 56, 40, backend="cpu", packed=packed, absgrad=absgrad,
         )  # fmt: skip
         strategy.step_pre_backward(params, optimizers, state, step, out.info)
         ((out.features - target) ** 2).mean().backward()
