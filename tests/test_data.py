@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from diamond_sss.data.analytic import FOV_X, SPHERE_RADIUS, make_capture
 from diamond_sss.data import DataError, OLATDataset
+from diamond_sss.data.analytic import FOV_X, SPHERE_RADIUS, make_capture
 from diamond_sss.data.conventions import (
     camera_centers,
     intrinsics_from_fov,
@@ -115,7 +115,7 @@ def test_batches_are_seeded_and_cover_each_epoch(tmp_path):
     ds = OLATDataset(tmp_path)
     first = [ds.batch_indices(step, 2, seed=7) for step in range(3)]
     assert first == [ds.batch_indices(step, 2, seed=7) for step in range(3)]
-    assert sorted(sum(first, [])) == list(range(6))
+    assert sorted(i for batch in first for i in batch) == list(range(6))
     assert first != [ds.batch_indices(step, 2, seed=8) for step in range(3)]
     resumed = ds.iter_batches(2, seed=7, start_step=1)
     assert next(resumed) == first[1]

@@ -7,9 +7,9 @@ import json
 import pytest
 import torch
 
-from diamond_sss.data.analytic import make_capture
 from diamond_sss.cli.main import main
 from diamond_sss.data import OLATDataset, select_regime
+from diamond_sss.data.analytic import make_capture
 from diamond_sss.data.dataset import directions_from
 from diamond_sss.data.regimes import farthest_point_order, resolve_count
 

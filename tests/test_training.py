@@ -8,9 +8,9 @@ import math
 import pytest
 import torch
 
-from diamond_sss.data.analytic import make_capture
 from diamond_sss.cli.main import main
 from diamond_sss.data import OLATDataset
+from diamond_sss.data.analytic import make_capture
 from diamond_sss.evaluation.evaluate import evaluate_scene
 from diamond_sss.gaussians.ply import import_ply
 from diamond_sss.training.checkpoint import optimizer_from_tensors, optimizer_to_tensors

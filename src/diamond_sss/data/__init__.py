@@ -1,6 +1,14 @@
 """OLAT data: conventions, the transforms-JSON reader, the lattice dataset and capture regimes."""
 
-from diamond_sss.data.dataset import Camera, ImageSample, Light, Observation, OLATDataset, SceneBounds, scene_bounds
+from diamond_sss.data.dataset import (
+    Camera,
+    ImageSample,
+    Light,
+    Observation,
+    OLATDataset,
+    SceneBounds,
+    scene_bounds,
+)
 from diamond_sss.data.errors import DataError
 from diamond_sss.data.regimes import RegimeSelection, select_regime
 

@@ -13,12 +13,12 @@ import numpy as np
 import torch
 
 from diamond_sss.data.conventions import (
+    camera_centers,
     intrinsics_from_fov,
     linear_to_srgb,
     look_at_opengl_c2w,
     opengl_c2w_to_opencv_w2c,
     pixel_ray_directions,
-    camera_centers,
 )
 from diamond_sss.data.images import write_png
 

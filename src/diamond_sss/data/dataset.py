@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import warnings
 from collections import OrderedDict
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Iterator, Sequence
 
 import numpy as np
 import torch
@@ -254,7 +254,7 @@ class OLATDataset:
         return maps[0], maps[1]
 
     # ------------------------------------------------------------------ selection and batches
-    def subset(self, observation_indices: Sequence[int]) -> "OLATDataset":
+    def subset(self, observation_indices: Sequence[int]) -> OLATDataset:
         """A dataset with the same lattice (cameras, lights, indices) restricted to some observations."""
         clone = object.__new__(OLATDataset)
         clone.__dict__.update({k: v for k, v in self.__dict__.items() if k not in _CACHED_PROPERTIES})
@@ -353,8 +353,8 @@ def _camera_matrix(record: ImageRecord, downscale: float) -> tuple[Tensor, Tenso
         K = intrinsics_matrix(intr.fx, intr.fy, cx, cy)
     else:
         K = intrinsics_from_fov(intr.fov_x, width, height, intr.fov_y)
-    new_width = max(1, int(round(width / downscale)))
-    new_height = max(1, int(round(height / downscale)))
+    new_width = max(1, round(width / downscale))
+    new_height = max(1, round(height / downscale))
     if new_width != width:
         K = scale_intrinsics(K, new_width / width)
     w2c = opengl_c2w_to_opencv_w2c(torch.from_numpy(record.c2w)).float()

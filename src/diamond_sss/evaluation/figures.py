@@ -3,18 +3,18 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from torch import Tensor  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from torch import Tensor
 
-from diamond_sss.data.conventions import linear_to_srgb  # noqa: E402
-from diamond_sss.utils.io import atomic_write  # noqa: E402
+from diamond_sss.data.conventions import linear_to_srgb
+from diamond_sss.utils.io import atomic_write
 
 
 def to_display(image: Tensor, *, linear: bool = True) -> np.ndarray:

@@ -13,9 +13,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import typing
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 
 @dataclass
@@ -127,6 +128,31 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+def short_schedule(iterations: int) -> dict[str, Any]:
+    """Overrides for a reconstruction of a few hundred steps at 64x64 on a CPU (demo, tests, benchmarks).
+
+    Tab. 3's schedule compressed to ``iterations``: densification from 25% to 85% of the run every ~12%,
+    no opacity reset (too short for the Gaussians to recover), the position learning rate decaying over the
+    run, batch 1, 3k initial Gaussians capped at 8k, lighter multi-view and ray-tracing sampling.
+    """
+    return {
+        "iterations": iterations,
+        "position_lr_max_steps": iterations,
+        "batch_size": 1,
+        "num_gaussians": 3_000,
+        "max_gaussians": 8_000,
+        "densify_from_iter": max(1, iterations // 4),
+        "densify_until_iter": max(2, int(iterations * 0.85)),
+        "densification_interval": max(1, iterations // 8),
+        "opacity_reset_interval": 10 * iterations + 1,
+        "mv_pairs_per_step": 1,
+        "mv_pixels_per_pair": 256,
+        "raytrace_gaussians": 512,
+        "log_every": max(1, iterations // 20),
+        "checkpoint_every": max(1, iterations // 2),
+    }
+
+
 def field_types() -> dict[str, type]:
     """Field name -> Python type of :class:`TrainConfig`."""
     hints = typing.get_type_hints(TrainConfig)
@@ -177,6 +203,17 @@ def _checked(key: str, value: Any) -> Any:
     return value
 
 
+def parse_sets(sets: Sequence[str]) -> dict[str, Any]:
+    """``["key=value", ...]`` (as given to ``--set``) -> typed overrides."""
+    parsed: dict[str, Any] = {}
+    for item in sets:
+        if "=" not in item:
+            raise ValueError(f"--set expects key=value, got '{item}'")
+        key, text = item.split("=", 1)
+        parsed[key.strip()] = parse_value(key.strip(), text)
+    return parsed
+
+
 def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = None,
                 config_file: Path | None = None, sets: Sequence[str] = ()) -> TrainConfig:
     """Resolve a configuration: preset, then ``config_file`` (JSON object), then ``overrides``, then ``sets``.
@@ -203,11 +240,7 @@ def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = N
                 raise ValueError(f"{path}: {exc}") from exc
     for key, value in (overrides or {}).items():
         values[key] = _checked(key, value)
-    for item in sets:
-        if "=" not in item:
-            raise ValueError(f"--set expects key=value, got '{item}'")
-        key, text = item.split("=", 1)
-        values[key.strip()] = parse_value(key.strip(), text)
+    values.update(parse_sets(sets))
     config = TrainConfig(**values)
     validate_config(config)
     return config

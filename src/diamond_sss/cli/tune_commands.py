@@ -1,0 +1,88 @@
+"""``diamond-sss tune``: the hyperparameter search of supplement Sec. A.3 (one worker of a study)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+from rich.console import Console
+
+SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
+                  tyro.conf.arg(name="set", help="fix a config key of every trial: --set key=value (repeatable)")]
+
+
+def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: str | None = None,
+         study: str = "diamond-sss", split: str = "train", preset: str = "diamond", iterations: int = 500,
+         report_every: int = 100, validation_images: int | None = None, schedule_scale: float | None = None,
+         set_: SetArg = [], seed: int = 0, worker: int = 0, device: str = "auto",  # noqa: B006
+         timeout: float | None = None, heartbeat_interval: int = 60, pruner_startup_trials: int = 3,
+         enqueue_presets: bool = True, report_only: bool = False) -> None:
+    """Search the loss weights and densification schedule (Fig. 5 / Tab. 4) on your capture with Optuna.
+
+    Each trial trains --iterations steps and is scored by PSNR on images held out of the regime's
+    TRAINING images (never the test split), reported every --report-every steps to a median pruner.
+    Writes to --out: parallel_coordinate.png (Fig. 5), tab4.md (original vs best), best_config.json
+    (for `diamond-sss train --config`), best_trial.json and trials.csv. Several workers (machines) share
+    one study when they get the same --storage URL (PostgreSQL) and --study name; --trials is the total.
+
+    Args:
+        data: data folder holding transforms_<split>.json.
+        out: output folder (default storage study.db, plot, table, best configuration).
+        regime: capture regime whose images the trials train on (validation images are held out of them).
+        trials: total trials of the study, shared by all its workers (the two enqueued presets included).
+        storage: SQLAlchemy URL, e.g. postgresql://user:password@host:5432/db; default sqlite in --out.
+        study: study name (workers of one study use the same name and storage).
+        split: training split.
+        preset: base preset the searched values are applied to.
+        iterations: training steps of one trial.
+        report_every: steps between validation PSNR reports to the pruner.
+        validation_images: held-out images (default: 10% of the selection, 1 to 8).
+        schedule_scale: factor on the iteration-valued keys (default iterations / 10000).
+        seed: seed of the regime, the validation split, training and the sampler.
+        worker: index of this worker (give each worker of a shared study its own).
+        device: auto | cpu | cuda.
+        timeout: stop starting trials after this many seconds.
+        heartbeat_interval: seconds between heartbeats; a trial silent for twice this is re-queued.
+        pruner_startup_trials: completed trials before the median pruner starts pruning.
+        enqueue_presets: the study's creator enqueues the sss3dgs and diamond presets as its first trials.
+        report_only: only write the outputs of the study as it stands.
+    """
+    from diamond_sss.training.config import parse_value
+    from diamond_sss.tuning.objective import Objective, ObjectiveSettings
+    from diamond_sss.tuning.report import write_report
+    from diamond_sss.tuning.space import SEARCH_SPACE
+    from diamond_sss.tuning.study import StudySettings, default_storage, open_study, run_worker
+    from diamond_sss.tuning.validation import load_tune_data
+
+    overrides = {"seed": seed, "device": device}
+    for item in set_:
+        if "=" not in item:
+            raise ValueError(f"--set expects key=value, got '{item}'")
+        key, text = (part.strip() for part in item.split("=", 1))
+        if key in SEARCH_SPACE or key == "iterations":
+            raise ValueError(f"--set {key}: '{key}' is {'searched' if key in SEARCH_SPACE else '--iterations'}")
+        overrides[key] = parse_value(key, text)
+    objective_settings = ObjectiveSettings(preset=preset, overrides=overrides, iterations=iterations,
+                                           report_every=report_every, schedule_scale=schedule_scale)
+    tune_data = load_tune_data(data, split=split, regime=regime, seed=seed, validation_images=validation_images,
+                               downscale=float(overrides.get("downscale", 1.0)))
+    study_settings = StudySettings(storage=storage or default_storage(out), study_name=study, seed=seed,
+                                   worker=worker, pruner_startup_trials=pruner_startup_trials,
+                                   pruner_warmup_steps=report_every, heartbeat_interval=heartbeat_interval,
+                                   enqueue_presets=enqueue_presets)
+    optuna_study = open_study(study_settings, objective_settings.fingerprint(tune_data))
+    console = Console()
+    if not report_only:
+        objective = Objective(tune_data, objective_settings, Path(out) / "trials")
+        ran = run_worker(optuna_study, objective, trials, timeout=timeout, poll_seconds=heartbeat_interval / 2)
+        console.print(f"worker {worker} ran trials {ran}")
+    paths = write_report(optuna_study, out)
+    best = optuna_study.best_trial
+    console.print(f"best: trial {best.number}, validation PSNR {best.value:.3f} dB")
+    for name, path in paths.items():
+        console.print(f"  {name}: {path}")
+
+
+if __name__ == "__main__":
+    tyro.cli(tune)
