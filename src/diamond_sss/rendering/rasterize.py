@@ -168,7 +168,9 @@ def _rasterize_cpu(
     )
     camera_ids, gaussian_ids = torch.nonzero((proj.radii > 0).all(-1), as_tuple=True)
     visible_features = features[gaussian_ids] if features.ndim == 2 else features[camera_ids, gaussian_ids]
-    all_opacities = opacities.expand(n_cameras, -1)
+    visible_conics = proj.conics[camera_ids, gaussian_ids]
+    visible_radii = proj.radii[camera_ids, gaussian_ids]
+    visible_opacities = opacities[gaussian_ids]
     if packed:
         means2d = proj.means2d[camera_ids, gaussian_ids]
         visible_means2d = means2d
@@ -180,10 +182,10 @@ def _rasterize_cpu(
 
     colors, alpha, lists = rasterize_entries(
         visible_means2d,
-        proj.conics[camera_ids, gaussian_ids],
-        opacities[gaussian_ids],
+        visible_conics,
+        visible_opacities,
         torch.cat([visible_features, depths[:, None].to(visible_features)], dim=-1),
-        proj.radii[camera_ids, gaussian_ids],
+        visible_radii,
         depths,
         camera_ids,
         n_cameras,
@@ -216,10 +218,10 @@ def _rasterize_cpu(
             batch_ids=torch.zeros_like(camera_ids),
             camera_ids=camera_ids,
             gaussian_ids=gaussian_ids,
-            radii=proj.radii[camera_ids, gaussian_ids],
+            radii=visible_radii,
             depths=depths,
-            conics=proj.conics[camera_ids, gaussian_ids],
-            opacities=opacities[gaussian_ids],
+            conics=visible_conics,
+            opacities=visible_opacities,
         )
     else:
         info.update(
@@ -229,7 +231,7 @@ def _rasterize_cpu(
             radii=proj.radii,
             depths=proj.depths,
             conics=proj.conics,
-            opacities=all_opacities,
+            opacities=opacities.expand(n_cameras, -1),
         )
     if absgrad_buffer is not None:
         means2d.absgrad = absgrad_buffer
