@@ -49,7 +49,7 @@ def rasterize(
     backend: Backend = "auto",
     near_plane: float = 0.01,
     far_plane: float = 1e10,
-    tile_size: int = 16,
+    tile_size: int | None = None,
     absgrad: bool = False,
     packed: bool = False,
 ) -> RasterOutput:
@@ -67,18 +67,21 @@ def rasterize(
         backend: ``"cpu"`` (our tiled PyTorch rasterizer), ``"cuda"`` (``gsplat.rasterization``) or
             ``"auto"`` (CUDA when the tensors are on a CUDA device).
         near_plane, far_plane: camera-z range of the Gaussian centres that are kept.
-        tile_size: tile side in pixels.
+        tile_size: tile side in pixels; default 16 on CUDA (gsplat's) and 8 on CPU, where smaller tiles
+            are 1.3-1.7x faster with identical output (every tile gets every Gaussian that reaches it).
         absgrad: also accumulate ``info["means2d"].absgrad`` (AbsGS) in the backward pass.
         packed: return per-(camera, Gaussian) info only for visible pairs (``[nnz, ...]``, with
             ``camera_ids`` / ``gaussian_ids``) instead of ``[B,N,...]``.
     """
-    n_cameras = _check_inputs(
-        means, quats, scales, opacities, features, viewmats, Ks, width, height, tile_size
-    )
     if backend not in ("auto", "cpu", "cuda"):
         raise ValueError(f"backend must be 'auto', 'cpu' or 'cuda', got {backend!r}")
     if backend == "auto":
         backend = "cuda" if means.is_cuda else "cpu"
+    if tile_size is None:
+        tile_size = 16 if backend == "cuda" else 8
+    n_cameras = _check_inputs(
+        means, quats, scales, opacities, features, viewmats, Ks, width, height, tile_size
+    )
     kwargs = {
         "near_plane": near_plane,
         "far_plane": far_plane,
