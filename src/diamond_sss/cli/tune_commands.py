@@ -21,7 +21,8 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
     """Search the loss weights and densification schedule (Fig. 5 / Tab. 4) on your capture with Optuna.
 
     Each trial trains --iterations steps and is scored by PSNR on images held out of the regime's
-    TRAINING images (never the test split), reported every --report-every steps to a median pruner.
+    TRAINING images (never the test split), reported every --report-every steps to a median pruner
+    (never at the first report).
     Writes to --out: parallel_coordinate.png (Fig. 5), tab4.md (original vs best), best_config.json
     (for `diamond-sss train --config`), best_trial.json and trials.csv. Several workers (machines) share
     one study when they get the same --storage URL (PostgreSQL) and --study name; --trials is the total.
@@ -69,7 +70,7 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
                                downscale=float(overrides.get("downscale", 1.0)))
     study_settings = StudySettings(storage=storage or default_storage(out), study_name=study, seed=seed,
                                    worker=worker, pruner_startup_trials=pruner_startup_trials,
-                                   pruner_warmup_steps=report_every, heartbeat_interval=heartbeat_interval,
+                                   pruner_warmup_steps=report_every + 1, heartbeat_interval=heartbeat_interval,
                                    enqueue_presets=enqueue_presets)
     optuna_study = open_study(study_settings, objective_settings.fingerprint(tune_data))
     console = Console()
