@@ -1,0 +1,353 @@
+"""Free3D-style novel-view diffusion model: a ray-conditioned, multi-view ``UNet2DConditionModel``.
+
+Inputs per object: one reference image with its camera and ``V`` target cameras. The denoiser sees the noisy
+target views concatenated with the reference (``2C`` input channels), a context token
+``proj([embed(reference), relative pose])`` for cross-attention, per-pixel Plucker rays in every ResNet block
+and attention across the ``V`` views. All views of an object share one timestep in training and one noise
+sample at sampling time. Space: ``pixel`` (RGBA in ``[-1, 1]``, the small offline default) or ``latent``
+(a local ``AutoencoderKL``, latents scaled by 0.18215).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from diffusers import AutoencoderKL, DDIMScheduler, DDPMScheduler, UNet2DConditionModel
+from torch import Tensor, nn
+
+from diamond_sss.data.conventions import scale_intrinsics
+from diamond_sss.diffusion.nvs.layers import ConditioningSlot, graft_free3d_layers, set_layer_checkpointing
+from diamond_sss.diffusion.nvs.rays import RELATIVE_POSE_CHANNELS, ray_embedding, relative_spherical_pose
+from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors, sha256_file
+
+CONFIG_NAME = "config.json"
+WEIGHTS_NAME = "model.safetensors"
+
+
+@dataclass
+class NVSConfig:
+    """Architecture and noise schedule of the novel-view model.
+
+    ``beta_schedule="scaled_linear"`` is the LDM/Free3D "linear" schedule (betas linear in sqrt space,
+    ``0.00085 -> 0.012`` over 1000 steps).
+    """
+
+    space: str = "pixel"
+    image_size: int = 32
+    image_channels: int = 4
+    latent_channels: int = 4
+    latent_scale: float = 0.18215
+    vae_path: str | None = None
+    block_out_channels: tuple[int, ...] = (32, 64, 64)
+    down_block_types: tuple[str, ...] = ("DownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D")
+    up_block_types: tuple[str, ...] = ("CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D")
+    layers_per_block: int = 1
+    attention_head_dim: int = 8
+    norm_num_groups: int = 8
+    cross_attention_dim: int = 64
+    embed_dim: int = 64
+    encoder_channels: tuple[int, ...] = (32, 64)
+    num_train_timesteps: int = 1000
+    beta_start: float = 0.00085
+    beta_end: float = 0.012
+    beta_schedule: str = "scaled_linear"
+    prediction_type: str = "epsilon"
+    condition_dropout: float = 0.05
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.space not in ("pixel", "latent"):
+            raise ValueError(f"space must be 'pixel' or 'latent', got {self.space!r}")
+        if self.space == "latent" and self.image_size % 8:
+            raise ValueError(f"latent space needs an image size divisible by 8, got {self.image_size}")
+        for name in ("block_out_channels", "down_block_types", "up_block_types", "encoder_channels"):
+            setattr(self, name, tuple(getattr(self, name)))
+
+    @property
+    def model_channels(self) -> int:
+        """Channels the UNet denoises (RGBA pixels or VAE latents)."""
+        return self.latent_channels if self.space == "latent" else self.image_channels
+
+    @property
+    def model_size(self) -> int:
+        """Spatial side of what the UNet denoises."""
+        return self.image_size // 8 if self.space == "latent" else self.image_size
+
+    @classmethod
+    def from_dict(cls, data: dict) -> NVSConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown NVS config keys {unknown}")
+        return cls(**data)
+
+
+class ReferenceEncoder(nn.Module):
+    """Small convolutional image embedding of the reference view (stands in for Free3D's CLIP embedding)."""
+
+    def __init__(self, in_channels: int, channels: tuple[int, ...], embed_dim: int):
+        super().__init__()
+        layers: list[nn.Module] = []
+        prev = in_channels
+        for ch in channels:
+            layers += [nn.Conv2d(prev, ch, 3, stride=2, padding=1), nn.SiLU()]
+            prev = ch
+        self.features = nn.Sequential(*layers)
+        self.proj = nn.Linear(prev, embed_dim)
+
+    def forward(self, image: Tensor) -> Tensor:
+        """``[B,C,H,W] -> [B,embed_dim]``."""
+        return self.proj(self.features(image).mean(dim=(-2, -1)))
+
+
+def make_train_scheduler(config: NVSConfig) -> DDPMScheduler:
+    """DDPM noise schedule of ``config`` (training)."""
+    return DDPMScheduler(num_train_timesteps=config.num_train_timesteps, beta_start=config.beta_start,
+                         beta_end=config.beta_end, beta_schedule=config.beta_schedule,
+                         prediction_type=config.prediction_type, clip_sample=False)
+
+
+def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
+    """Deterministic DDIM sampler (``eta = 0``) on the same schedule."""
+    return DDIMScheduler(num_train_timesteps=config.num_train_timesteps, beta_start=config.beta_start,
+                         beta_end=config.beta_end, beta_schedule=config.beta_schedule,
+                         prediction_type=config.prediction_type, clip_sample=False, set_alpha_to_one=False,
+                         steps_offset=1)
+
+
+@dataclass
+class NVSBatch:
+    """One batch of objects. Images are RGBA, linear premultiplied colour and alpha in ``[0, 1]``.
+
+    ``reference [B,4,H,W]``, ``targets [B,V,4,H,W]`` (None at sampling), ``reference_w2c [B,4,4]``,
+    ``target_w2c [B,V,4,4]``, ``target_K [B,V,3,3]`` pixel intrinsics of the ``H x W`` images.
+    """
+
+    reference: Tensor
+    reference_w2c: Tensor
+    target_w2c: Tensor
+    target_K: Tensor
+    targets: Tensor | None = None
+
+    def validate(self) -> None:
+        b = self.reference.shape[0]
+        if self.reference.ndim != 4:
+            raise ValueError(f"reference must be [B,C,H,W], got {tuple(self.reference.shape)}")
+        if self.target_w2c.ndim != 4 or self.target_w2c.shape[0] != b or self.target_w2c.shape[-2:] != (4, 4):
+            raise ValueError(f"target_w2c must be [B,V,4,4] with B={b}, got {tuple(self.target_w2c.shape)}")
+        if self.target_K.shape != (*self.target_w2c.shape[:2], 3, 3):
+            raise ValueError(f"target_K must be [B,V,3,3], got {tuple(self.target_K.shape)}")
+        if self.reference_w2c.shape != (b, 4, 4):
+            raise ValueError(f"reference_w2c must be [B,4,4], got {tuple(self.reference_w2c.shape)}")
+        if self.targets is not None and self.targets.shape[:2] != self.target_w2c.shape[:2]:
+            raise ValueError(f"targets {tuple(self.targets.shape)} do not match cameras {tuple(self.target_w2c.shape)}")
+
+
+class NVSModel(nn.Module):
+    """Denoiser plus conditioning encoders; see the module docstring."""
+
+    def __init__(self, config: NVSConfig, vae: AutoencoderKL | None = None):
+        super().__init__()
+        self.config = config
+        c = config.model_channels
+        self.unet = UNet2DConditionModel(
+            sample_size=config.model_size, in_channels=2 * c, out_channels=c,
+            block_out_channels=config.block_out_channels, down_block_types=config.down_block_types,
+            up_block_types=config.up_block_types, layers_per_block=config.layers_per_block,
+            attention_head_dim=config.attention_head_dim, norm_num_groups=config.norm_num_groups,
+            cross_attention_dim=config.cross_attention_dim,
+        )
+        self.slot = ConditioningSlot()
+        graft_free3d_layers(self.unet, self.slot)
+        self.reference_encoder = ReferenceEncoder(c, config.encoder_channels, config.embed_dim)
+        self.context_projection = nn.Linear(config.embed_dim + RELATIVE_POSE_CHANNELS, config.cross_attention_dim)
+        with torch.no_grad():  # Free3D: identity on the image embedding, zero on the pose at start
+            self.context_projection.weight.zero_()
+            n = min(config.embed_dim, config.cross_attention_dim)
+            self.context_projection.weight[:n, :n] = torch.eye(n)
+            self.context_projection.bias.zero_()
+        self.null_embedding = nn.Parameter(torch.zeros(config.embed_dim))
+        if config.space == "latent" and vae is None:
+            if config.vae_path is None:
+                raise ValueError("latent space needs a VAE: pass vae= or set config.vae_path to a local folder")
+            vae = AutoencoderKL.from_pretrained(config.vae_path, local_files_only=True)
+        self.vae = vae
+        if vae is not None:
+            vae.requires_grad_(False)
+
+    # ----------------------------------------------------------------- spaces
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        """Everything but the frozen VAE."""
+        return [p for n, p in self.named_parameters() if not n.startswith("vae.")]
+
+    def enable_gradient_checkpointing(self, enabled: bool = True) -> None:
+        """Checkpoint every ray-conditioned ResNet block and multi-view transformer block."""
+        set_layer_checkpointing(self.unet, enabled)
+
+    def encode(self, rgba: Tensor) -> Tensor:
+        """RGBA in ``[0, 1]`` ``[N,4,H,W]`` -> model space (pixels in ``[-1, 1]`` or scaled VAE latents)."""
+        size = self.config.image_size
+        if rgba.shape[-2:] != (size, size):
+            rgba = F.interpolate(rgba, size=(size, size), mode="area")
+        x = rgba * 2 - 1
+        if self.config.space == "pixel":
+            return x
+        x = x[:, : self.vae.config.in_channels]
+        return self.vae.encode(x).latent_dist.mode() * self.config.latent_scale
+
+    def decode(self, x: Tensor) -> Tensor:
+        """Model space -> RGBA in ``[0, 1]`` ``[N,4,H,W]`` (alpha from a 3-channel VAE: coverage of colour)."""
+        if self.config.space == "latent":
+            x = self.vae.decode(x / self.config.latent_scale).sample
+        rgba = ((x + 1) / 2).clamp(0, 1)
+        if rgba.shape[1] == 3:
+            alpha = (rgba.amax(dim=1, keepdim=True) > 1 / 255).to(rgba.dtype)
+            rgba = torch.cat([rgba, alpha], dim=1)
+        return rgba
+
+    # ----------------------------------------------------------- conditioning
+    def conditioning(self, batch: NVSBatch, reference_model: Tensor) -> tuple[Tensor, Tensor]:
+        """Ray embedding ``[B*V,78,h,w]`` at the model resolution and pose tokens ``[B*V,4]``."""
+        b, v = batch.target_w2c.shape[:2]
+        h = self.config.model_size
+        factor = h / batch.reference.shape[-1]
+        K = scale_intrinsics(batch.target_K, factor)
+        ref = batch.reference_w2c[:, None].expand(b, v, 4, 4)
+        rays = ray_embedding(batch.target_w2c, ref, K, h, h).flatten(0, 1)
+        pose = relative_spherical_pose(batch.target_w2c, ref).flatten(0, 1)
+        return rays.to(reference_model.dtype), pose.to(reference_model.dtype)
+
+    def context(self, image_embedding: Tensor, pose: Tensor, drop_image: Tensor) -> Tensor:
+        """Context token ``proj([embedding or null, pose])``, ``[N,1,D]``; ``drop_image [N]`` bool."""
+        emb = torch.where(drop_image[:, None], self.null_embedding.expand_as(image_embedding), image_embedding)
+        return self.context_projection(torch.cat([emb, pose], dim=-1))[:, None]
+
+    def denoise(self, noisy: Tensor, timesteps: Tensor, reference: Tensor, context: Tensor, rays: Tensor,
+                num_views: int) -> Tensor:
+        """UNet prediction for ``noisy [B*V,C,h,w]`` (views of an object contiguous)."""
+        self.slot.rays, self.slot.num_views = rays, num_views
+        try:
+            return self.unet(torch.cat([noisy, reference], dim=1), timesteps, encoder_hidden_states=context).sample
+        finally:
+            self.slot.rays, self.slot.num_views = None, 1
+
+    # --------------------------------------------------------------- training
+    def training_loss(self, batch: NVSBatch, generator: torch.Generator | None = None,
+                      scheduler: DDPMScheduler | None = None) -> Tensor:
+        """Free3D objective: MSE of the predicted noise, one timestep per object, condition dropout.
+
+        Dropout (probability ``p``): image embedding dropped when ``u < 2p``, reference image and rays
+        dropped when ``p <= u < 3p`` (both for ``p <= u < 2p``), as in Free3D.
+        """
+        batch.validate()
+        if batch.targets is None:
+            raise ValueError("training needs target images")
+        scheduler = scheduler or make_train_scheduler(self.config)
+        b, v = batch.target_w2c.shape[:2]
+        device = batch.reference.device
+        with torch.no_grad():
+            target = self.encode(batch.targets.flatten(0, 1))
+            reference = self.encode(batch.reference)
+        t = torch.randint(0, scheduler.config.num_train_timesteps, (b,), generator=generator, device=device)
+        t = t.repeat_interleave(v)
+        noise = torch.randn(target.shape, generator=generator, device=device)
+        noisy = scheduler.add_noise(target, noise, t)
+        rays, pose = self.conditioning(batch, reference)
+        p = self.config.condition_dropout
+        u = torch.rand(b * v, generator=generator, device=device)
+        drop_image = u < 2 * p
+        keep_input = ~((u >= p) & (u < 3 * p))
+        embedding = self.reference_encoder(reference).repeat_interleave(v, dim=0)
+        context = self.context(embedding, pose, drop_image)
+        ref = reference.repeat_interleave(v, dim=0) * keep_input[:, None, None, None]
+        rays = rays * keep_input[:, None, None, None]
+        pred = self.denoise(noisy, t, ref, context, rays, v)
+        if self.config.prediction_type == "epsilon":
+            goal = noise
+        else:
+            goal = scheduler.get_velocity(target, noise, t)
+        return F.mse_loss(pred, goal)
+
+    # --------------------------------------------------------------- sampling
+    @torch.no_grad()
+    def sample(self, batch: NVSBatch, num_steps: int = 50, guidance_scale: float = 3.0,
+               generator: torch.Generator | None = None) -> Tensor:
+        """Generate the target views, ``[B,V,4,H,W]`` RGBA in ``[0, 1]`` at the model's image size.
+
+        One initial noise per object, shared by its views; DDIM (``eta = 0``) with classifier-free guidance
+        ``eps = eps_u + s (eps_c - eps_u)`` where the unconditional branch drops image, reference and rays.
+        """
+        batch.validate()
+        if num_steps < 1:
+            raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+        b, v = batch.target_w2c.shape[:2]
+        device = batch.reference.device
+        reference = self.encode(batch.reference)
+        rays, pose = self.conditioning(batch, reference)
+        embedding = self.reference_encoder(reference).repeat_interleave(v, dim=0)
+        ref = reference.repeat_interleave(v, dim=0)
+        n = b * v
+        keep = torch.zeros(n, dtype=torch.bool, device=device)
+        cond = self.context(embedding, pose, keep)
+        guided = guidance_scale != 1.0
+        if guided:
+            uncond = self.context(embedding, pose, ~keep)
+            cond = torch.cat([cond, uncond])
+            ref = torch.cat([ref, torch.zeros_like(ref)])
+            rays = torch.cat([rays, torch.zeros_like(rays)])
+        c, h = self.config.model_channels, self.config.model_size
+        x = shared_noise(b, v, (c, h, h), generator=generator, device=device).flatten(0, 1)
+        scheduler = make_sample_scheduler(self.config)
+        scheduler.set_timesteps(num_steps, device=device)
+        for t in scheduler.timesteps:
+            model_in = torch.cat([x, x]) if guided else x
+            ts = t.expand(model_in.shape[0]).to(device)
+            pred = self.denoise(model_in, ts, ref, cond, rays, v)
+            if guided:
+                pred_c, pred_u = pred.chunk(2)
+                pred = pred_u + guidance_scale * (pred_c - pred_u)
+            x = scheduler.step(pred, t, x).prev_sample
+        rgba = self.decode(x)
+        return rgba.reshape(b, v, *rgba.shape[1:])
+
+    # -------------------------------------------------------------- save/load
+    def save(self, folder: str | Path) -> Path:
+        """Write ``config.json`` and ``model.safetensors`` (without the VAE) atomically into ``folder``."""
+        folder = Path(folder)
+        tensors = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items() if not k.startswith("vae.")}
+        atomic_save_safetensors(folder / WEIGHTS_NAME, tensors)
+        atomic_write_json(folder / CONFIG_NAME, asdict(self.config))
+        return folder
+
+    @classmethod
+    def load(cls, folder: str | Path, vae: AutoencoderKL | None = None) -> NVSModel:
+        """Load a model written by :meth:`save`."""
+        folder = Path(folder)
+        for name in (CONFIG_NAME, WEIGHTS_NAME):
+            if not (folder / name).is_file():
+                raise FileNotFoundError(f"NVS model folder {folder} has no {name}")
+        config = NVSConfig.from_dict(json.loads((folder / CONFIG_NAME).read_text()))
+        model = cls(config, vae=vae)
+        state = load_safetensors(folder / WEIGHTS_NAME)
+        missing, unexpected = model.load_state_dict(state, strict=False)
+        missing = [k for k in missing if not k.startswith("vae.")]
+        if missing or unexpected:
+            raise ValueError(f"{folder / WEIGHTS_NAME}: missing keys {missing[:5]}, unexpected {unexpected[:5]}")
+        return model.eval()
+
+
+def model_hash(folder: str | Path) -> str:
+    """Content key of a saved model: hash of its weights and config."""
+    folder = Path(folder)
+    return sha256_file(folder / WEIGHTS_NAME)[:16] + sha256_file(folder / CONFIG_NAME)[:16]
+
+
+def shared_noise(num_objects: int, num_views: int, shape: tuple[int, ...], generator: torch.Generator | None = None,
+                 device: torch.device | str | None = None) -> Tensor:
+    """One Gaussian noise sample per object, repeated over its views: ``[B,V,*shape]``."""
+    noise = torch.randn((num_objects, 1, *shape), generator=generator, device=device)
+    return noise.expand(num_objects, num_views, *shape).contiguous()
