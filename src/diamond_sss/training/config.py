@@ -82,7 +82,8 @@ class TrainConfig:
     raytrace_every: int = 10
     raytrace_gaussians: int = 1_024
     raytrace_directions: int = 4
-    # multi-view consistency sampling (Sec. D)
+    # multi-view consistency sampling (Sec. D); target views are rendered at 1/mv_target_downscale resolution
+    # (depth is smooth and sampled bilinearly, so the constraint is the same at a fraction of the cost)
     mv_pairs_per_step: int = 2
     mv_pixels_per_pair: int = 512
     mv_target_mode: str = "nearest-k"
@@ -91,8 +92,11 @@ class TrainConfig:
     mv_occlusion_tol: float = 0.02
     mv_charbonnier_eps: float = 0.0
     mv_include_unobserved_views: bool = True
-    # runtime
+    mv_target_downscale: int = 2
+    # runtime; cpu_threads: torch intra-op threads on CPU (0 = torch's default). One thread is the default:
+    # these small kernels gain little from a second thread and lose 10x when cores are oversubscribed.
     device: str = "auto"
+    cpu_threads: int = 1
     mixed_precision: bool = True
     downscale: float = 1.0
     checkpoint_every: int = 500
@@ -249,7 +253,7 @@ def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = N
 def validate_config(config: TrainConfig) -> None:
     """Reject values that cannot work, naming the key."""
     positive = ["iterations", "batch_size", "num_gaussians", "sss_width", "checkpoint_every", "log_every",
-                "densification_interval", "raytrace_every", "max_gaussians"]
+                "densification_interval", "raytrace_every", "max_gaussians", "mv_target_downscale"]
     for key in positive:
         if getattr(config, key) <= 0:
             raise ValueError(f"config key '{key}' must be positive, got {getattr(config, key)}")

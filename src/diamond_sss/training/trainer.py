@@ -19,8 +19,9 @@ from gsplat.strategy import DefaultStrategy
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from diamond_sss.data.conventions import linear_to_srgb
+from diamond_sss.data.conventions import linear_to_srgb, scale_intrinsics
 from diamond_sss.data.dataset import OLATDataset, seeded_epoch_indices
+from diamond_sss.data.images import resize_area
 from diamond_sss.gaussians.init import initial_points
 from diamond_sss.gaussians.model import GaussianModel
 from diamond_sss.losses.lpips import load_lpips
@@ -109,6 +110,8 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.show_progress = show_progress
         self.device = resolve_device(cfg.device)
+        if self.device.type == "cpu" and cfg.cpu_threads > 0:
+            torch.set_num_threads(cfg.cpu_threads)
         self.index = [(s, i) for s, source in enumerate(sources) for i in range(len(source.dataset))]
         self.bounds = self.lattice.bounds
         self.viewmats = self.lattice.viewmats.to(self.device)
@@ -258,10 +261,14 @@ class Trainer:
         if not sources:
             return {}
         tgt = torch.tensor(targets, device=self.device)
-        geometry = scene.render_geometry(self.viewmats[tgt], self.Ks[tgt], self.width, self.height)
+        factor = cfg.mv_target_downscale
+        tgt_width, tgt_height = max(1, self.width // factor), max(1, self.height // factor)
+        tgt_K = scale_intrinsics(self.Ks[tgt], tgt_width / self.width)
+        geometry = scene.render_geometry(self.viewmats[tgt], tgt_K, tgt_width, tgt_height)
         tgt_depth, tgt_alpha = geometry.depth[..., 0], geometry.alpha[..., 0]
         silhouettes = torch.stack([
-            self.view_silhouettes[t] if t in self.view_silhouettes else tgt_alpha[p].detach()
+            resize_area(self.view_silhouettes[t][..., None], tgt_height, tgt_width)[..., 0]
+            if t in self.view_silhouettes else tgt_alpha[p].detach()
             for p, t in enumerate(targets)
         ])
         src = torch.tensor(sources, device=self.device)
@@ -275,7 +282,7 @@ class Trainer:
             valid[p, : pixels.shape[0]] = True
         terms = multiview_losses_batched(
             render.gbuffer.depth[src, ..., 0], render.gbuffer.alpha[src, ..., 0], uv, target.viewmats[src],
-            target.Ks[src], tgt_depth, tgt_alpha, silhouettes, self.viewmats[tgt], self.Ks[tgt],
+            target.Ks[src], tgt_depth, tgt_alpha, silhouettes, self.viewmats[tgt], tgt_K,
             self.bounds.near, self.bounds.far, self.mv_cfg, src_uv_valid=valid,
         )
         out = {}
