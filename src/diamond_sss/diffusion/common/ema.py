@@ -1,0 +1,73 @@
+"""Exponential moving average of a module's parameters (the weights that get shipped)."""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from typing import Iterator
+
+import torch
+from torch import Tensor, nn
+
+
+class EMA:
+    """Shadow copy ``s <- d s + (1 - d) p`` of every floating-point parameter and buffer of ``module``.
+
+    The decay warms up as ``d_k = min(decay, (1 + k) / (10 + k))`` so early averages are not dominated
+    by the random initialisation. ``state_dict`` / ``load_state_dict`` make it resumable.
+    """
+
+    def __init__(self, module: nn.Module, decay: float = 0.999) -> None:
+        if not 0.0 <= decay < 1.0:
+            raise ValueError(f"EMA decay must be in [0, 1), got {decay}")
+        self.decay = decay
+        self.num_updates = 0
+        self.shadow = {k: v.detach().clone() for k, v in _float_state(module).items()}
+
+    def current_decay(self) -> float:
+        """Decay used by the next update."""
+        return min(self.decay, (1.0 + self.num_updates) / (10.0 + self.num_updates))
+
+    @torch.no_grad()
+    def update(self, module: nn.Module) -> None:
+        """Blend the module's current weights into the shadow."""
+        decay = self.current_decay()
+        for key, value in _float_state(module).items():
+            self.shadow[key].lerp_(value.detach().to(self.shadow[key].device), 1.0 - decay)
+        self.num_updates += 1
+
+    @torch.no_grad()
+    def copy_to(self, module: nn.Module) -> None:
+        """Write the averaged weights into ``module``."""
+        state = _float_state(module)
+        for key, value in self.shadow.items():
+            state[key].copy_(value)
+
+    @contextmanager
+    def averaged(self, module: nn.Module) -> Iterator[nn.Module]:
+        """Temporarily swap the averaged weights into ``module`` (restored on exit)."""
+        backup = {k: v.detach().clone() for k, v in _float_state(module).items()}
+        self.copy_to(module)
+        try:
+            yield module
+        finally:
+            with torch.no_grad():
+                state = _float_state(module)
+                for key, value in backup.items():
+                    state[key].copy_(value)
+
+    def state_dict(self) -> dict[str, Tensor]:
+        """Shadow tensors plus the update counter (as a tensor, safetensors-friendly)."""
+        return {**{f"shadow.{k}": v for k, v in self.shadow.items()},
+                "num_updates": torch.tensor(self.num_updates, dtype=torch.int64)}
+
+    def load_state_dict(self, state: dict[str, Tensor]) -> None:
+        missing = [k for k in self.shadow if f"shadow.{k}" not in state]
+        if missing or "num_updates" not in state:
+            raise KeyError(f"EMA state is missing {missing[:3] or ['num_updates']}")
+        for key in self.shadow:
+            self.shadow[key].copy_(state[f"shadow.{key}"])
+        self.num_updates = int(state["num_updates"])
+
+
+def _float_state(module: nn.Module) -> dict[str, Tensor]:
+    return {k: v for k, v in module.state_dict(keep_vars=True).items() if v.is_floating_point()}
