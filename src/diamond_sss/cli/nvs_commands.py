@@ -49,3 +49,33 @@ def finetune_nvs(out: Path, data: list[Path] | None = None, steps: int = 1000, o
     console = Console()
     folder = finetune(data, out, config, resume=resume, log=console.print)
     console.print(f"model -> {folder}")
+
+
+def nvs(data: Path, view: int, light: int, targets: str, out: Path, split: str = "train",
+        model: Path | None = None, steps: int = 50, guidance_scale: float = 3.0, seed: int = 0,
+        cache: Path | None = None, device: str = "cpu") -> None:
+    """Generate novel views of an object under a fixed light from one reference image (Free3D-style model).
+
+    Writes <out>/<name>.png (sRGB, premultiplied, with alpha), <out>/<name>_mask.png and <out>/manifest.json
+    (a list of {view, light, image, mask}); results are cached by model hash and input hash.
+
+    Args:
+        data: OLAT data folder holding transforms_<split>.json.
+        view: reference view index (lattice index in the split).
+        light: light index of the reference image (the generated views keep this light).
+        targets: lattice view indices ("3,7,12") or a JSON file of 4x4 OpenGL camera-to-world matrices
+            (a list, or {"camera_angle_x": f, "frames": [{"transform_matrix": M}]}).
+        out: output folder.
+        split: data split of the reference and of the target indices.
+        model: model folder (config.json + model.safetensors); default: the model shipped in the package.
+        steps: DDIM steps.
+        guidance_scale: classifier-free guidance scale (1: no guidance).
+        seed: seed of the shared initial noise.
+        cache: cache folder (default $DIAMOND_SSS_CACHE/nvs or ~/.cache/diamond_sss/nvs).
+        device: cpu or cuda.
+    """
+    from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
+
+    manifest = generate_novel_views(data, out, view, light, targets, split=split, model_dir=model, steps=steps,
+                                    guidance_scale=guidance_scale, seed=seed, cache_dir=cache, device=device)
+    Console().print(f"novel views -> {manifest}")

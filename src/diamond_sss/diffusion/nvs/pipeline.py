@@ -1,0 +1,190 @@
+"""Novel-view generation for an OLAT data set: reference (view, light) -> target cameras, cached.
+
+Outputs in ``out``: ``<name>.png`` (sRGB, premultiplied colour with alpha), ``<name>_mask.png`` (alpha) and
+``manifest.json``, a list of ``{view, light, image, mask}`` with paths relative to ``out``. Generation is
+cached under a key of the model hash and the hash of every input (reference image, cameras, settings).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from diamond_sss.data import OLATDataset
+from diamond_sss.data.conventions import intrinsics_from_fov, opengl_c2w_to_opencv_w2c
+from diamond_sss.data.images import to_srgb8, write_png
+from diamond_sss.diffusion.common.cache import OutputCache
+from diamond_sss.diffusion.nvs.data import load_rgba_views
+from diamond_sss.diffusion.nvs.model import NVSBatch, NVSModel, model_hash
+from diamond_sss.utils.io import atomic_write_json, sha256_file
+
+MANIFEST = "manifest.json"
+
+
+def default_model_dir() -> Path:
+    """The model shipped inside the package (``diamond_sss/assets/models/nvs``)."""
+    return Path(str(resources.files("diamond_sss") / "assets" / "models" / "nvs"))
+
+
+def default_cache_dir() -> Path:
+    """``$DIAMOND_SSS_CACHE/nvs``, default ``~/.cache/diamond_sss/nvs``."""
+    return Path(os.environ.get("DIAMOND_SSS_CACHE", Path.home() / ".cache" / "diamond_sss")) / "nvs"
+
+
+@dataclass
+class TargetCameras:
+    """Cameras to generate: ``w2c [T,4,4]`` OpenCV, ``K [T,3,3]`` at ``size`` pixels, and their labels."""
+
+    w2c: Tensor
+    K: Tensor
+    views: list[int]
+    names: list[str]
+    size: int
+
+
+def _matrix(value, shape: tuple[int, int], where: str) -> Tensor:
+    try:
+        matrix = torch.tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{where}: expected a {shape[0]}x{shape[1]} matrix of numbers ({err})") from None
+    if matrix.shape != shape or not torch.isfinite(matrix).all():
+        raise ValueError(f"{where}: expected a finite {shape[0]}x{shape[1]} matrix, got shape {tuple(matrix.shape)}")
+    return matrix
+
+
+def parse_targets(targets: str, dataset: OLATDataset) -> TargetCameras:
+    """Target cameras from lattice view indices (``"3,7,12"``) or a JSON file of camera matrices.
+
+    JSON: a list of 4x4 OpenGL camera-to-world matrices, or ``{"camera_angle_x": f, "frames":
+    [{"transform_matrix": M}, ...]}`` as in ``transforms_*.json``; without a field of view the data set's
+    intrinsics are used.
+    """
+    size = dataset.width
+    text = targets.strip()
+    if _is_index_list(text):
+        views = json.loads(text)
+    elif text.endswith(".json") or text.startswith(("[", "{")):
+        return _targets_from_json(text, dataset)
+    else:
+        try:
+            views = [int(part) for part in text.replace(" ", "").split(",") if part]
+        except ValueError:
+            raise ValueError(f"--targets must be view indices like '3,7,12' or a JSON file of poses, "
+                             f"got {targets!r}") from None
+    if not views:
+        raise ValueError("--targets lists no view")
+    bad = [v for v in views if not 0 <= v < dataset.num_views]
+    if bad:
+        raise ValueError(f"unknown view index {bad} (the {dataset.split} split has views 0..{dataset.num_views - 1})")
+    return TargetCameras(dataset.viewmats[views].double(), dataset.intrinsics[views].double(), views,
+                         [f"view_{v:03d}" for v in views], size)
+
+
+def _is_index_list(text: str) -> bool:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError:
+        return False
+    return isinstance(value, list) and all(isinstance(v, int) for v in value)
+
+
+def _targets_from_json(text: str, dataset: OLATDataset) -> TargetCameras:
+    source = text
+    if text.endswith(".json") and not text.startswith(("[", "{")):
+        path = Path(text)
+        if not path.is_file():
+            raise ValueError(f"pose file {path} not found")
+        text, source = path.read_text(), str(path)
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"malformed pose JSON in {source}: {err}") from None
+    if isinstance(data, list) and all(isinstance(v, int) for v in data):
+        return parse_targets(",".join(str(v) for v in data), dataset)
+    fov = None
+    if isinstance(data, dict):
+        if not isinstance(data.get("frames"), list):
+            raise ValueError(f"pose JSON {source}: an object needs a 'frames' list")
+        fov = data.get("camera_angle_x")
+        try:
+            matrices = [frame["transform_matrix"] for frame in data["frames"]]
+        except (KeyError, TypeError):
+            raise ValueError(f"pose JSON {source}: every frame needs a 'transform_matrix'") from None
+    elif isinstance(data, list):
+        matrices = data
+    else:
+        raise ValueError(f"pose JSON {source}: expected a list of 4x4 matrices or an object with 'frames'")
+    if not matrices:
+        raise ValueError(f"pose JSON {source} holds no camera")
+    c2w = torch.stack([_matrix(m, (4, 4), f"pose JSON {source}, camera {i}") for i, m in enumerate(matrices)])
+    w2c = opengl_c2w_to_opencv_w2c(c2w)
+    size = dataset.width
+    if fov is not None:
+        K = intrinsics_from_fov(float(fov), size, size).double().expand(len(matrices), 3, 3)
+    else:
+        K = dataset.intrinsics[:1].double().expand(len(matrices), 3, 3)
+    n = len(matrices)
+    return TargetCameras(w2c, K.clone(), list(range(n)), [f"pose_{i:03d}" for i in range(n)], size)
+
+
+def generate_novel_views(data: str | Path, out: str | Path, view: int, light: int, targets: str, split: str = "train",
+                         model_dir: str | Path | None = None, steps: int = 50, guidance_scale: float = 3.0,
+                         seed: int = 0, cache_dir: str | Path | None = None, device: str = "cpu") -> Path:
+    """Generate the ``targets`` of ``data`` seen under ``light`` from the reference ``view``; returns the manifest.
+
+    Deterministic for a seed; a second call with the same model and inputs is served from the cache.
+    """
+    dataset = OLATDataset(data, split)
+    if not 0 <= view < dataset.num_views:
+        raise ValueError(f"unknown view index {view} (the {split} split has views 0..{dataset.num_views - 1})")
+    if not 0 <= light < dataset.num_lights:
+        raise ValueError(f"unknown light index {light} (the {split} split has lights 0..{dataset.num_lights - 1})")
+    if not bool(dataset.presence[view, light]):
+        raise ValueError(f"view {view} was not captured under light {light} in {dataset.json_path}")
+    cameras = parse_targets(targets, dataset)
+    model_dir = Path(model_dir) if model_dir is not None else default_model_dir()
+    image_path = dataset.observations[dataset.observation_index(view, light)].image_path
+    key = OutputCache.key({
+        "model": model_hash(model_dir), "reference": sha256_file(image_path),
+        "reference_w2c": dataset.viewmats[view].tolist(), "reference_K": dataset.intrinsics[view].tolist(),
+        "targets_w2c": cameras.w2c.tolist(), "targets_K": cameras.K.tolist(), "names": cameras.names,
+        "steps": steps, "guidance_scale": guidance_scale, "seed": seed,
+    })
+    cache = OutputCache(cache_dir if cache_dir is not None else default_cache_dir())
+
+    def write(folder: Path) -> None:
+        model = NVSModel.load(model_dir).to(device)
+        size = model.config.image_size
+        reference, _ = load_rgba_views(dataset, [view], light, size)
+        scale = size / cameras.size
+        K = cameras.K.clone()
+        K[:, :2] *= scale
+        batch = NVSBatch(reference=reference.to(device), reference_w2c=dataset.viewmats[view][None].float().to(device),
+                         target_w2c=cameras.w2c[None].float().to(device), target_K=K[None].float().to(device))
+        generator = torch.Generator(device=device).manual_seed(seed)
+        rgba = model.sample(batch, num_steps=steps, guidance_scale=guidance_scale, generator=generator)[0]
+        rgba = F.interpolate(rgba.float().cpu(), size=(cameras.size, cameras.size), mode="bilinear",
+                             align_corners=False).clamp(0, 1)
+        for name, image in zip(cameras.names, rgba):
+            rgb, alpha = image[:3].permute(1, 2, 0), image[3:].permute(1, 2, 0)
+            write_png(folder / f"{name}.png", to_srgb8(rgb, alpha))
+            write_png(folder / f"{name}_mask.png", (alpha[..., 0].numpy() * 255 + 0.5).astype("uint8"))
+
+    entry, _ = cache.get_or_create(key, write)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = []
+    for target_view, name in zip(cameras.views, cameras.names):
+        for suffix in (".png", "_mask.png"):
+            shutil.copyfile(entry / f"{name}{suffix}", out / f".{name}{suffix}.tmp")
+            os.replace(out / f".{name}{suffix}.tmp", out / f"{name}{suffix}")
+        manifest.append({"view": target_view, "light": light, "image": f"{name}.png", "mask": f"{name}_mask.png"})
+    return atomic_write_json(out / MANIFEST, manifest)
