@@ -18,10 +18,12 @@ from pathlib import Path
 from typing import Any
 
 import optuna
+import sqlalchemy
 from optuna.trial import FrozenTrial, TrialState
 
 from diamond_sss.tuning.space import BEST_PRESET, ORIGINAL_PRESET, preset_params
 
+SCHEMA_ATTEMPTS = 5
 FINISHED_OR_ACTIVE = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING, TrialState.WAITING)
 
 
@@ -79,18 +81,29 @@ def _retry_callback(max_retry: int) -> tuple[str, Callable[[optuna.Study, Frozen
 
 
 def make_storage(settings: StudySettings) -> optuna.storages.RDBStorage:
-    """An RDB storage with heartbeats and the retry callback; SQLite waits on locks instead of failing."""
+    """An RDB storage with heartbeats and the retry callback; SQLite waits on locks instead of failing.
+
+    Creating Optuna's tables is retried: workers started together on an empty database race to do it.
+    """
     url = settings.storage
     engine_kwargs: dict[str, Any] = {"pool_pre_ping": True}
     if url.startswith("sqlite"):
         engine_kwargs = {"connect_args": {"timeout": 60}}
     keyword, callback = _retry_callback(settings.max_retry)
     grace = settings.grace_period if settings.grace_period is not None else 2 * settings.heartbeat_interval
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        return optuna.storages.RDBStorage(url, engine_kwargs=engine_kwargs,
-                                          heartbeat_interval=settings.heartbeat_interval, grace_period=grace,
-                                          **{keyword: callback})
+    attempt = 0
+    while True:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                return optuna.storages.RDBStorage(url, engine_kwargs=engine_kwargs,
+                                                  heartbeat_interval=settings.heartbeat_interval,
+                                                  grace_period=grace, **{keyword: callback})
+        except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):
+            attempt += 1
+            if attempt == SCHEMA_ATTEMPTS:
+                raise
+            time.sleep(0.5 * attempt)
 
 
 def open_study(settings: StudySettings, fingerprint: dict[str, Any]) -> optuna.Study:
