@@ -1,0 +1,59 @@
+"""The geometry-source interface and the math shared by its implementations."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from diamond_sss.data.dataset import OLATDataset
+
+
+class GeometryError(RuntimeError):
+    """No usable geometry for a view (missing maps, run folder or model path)."""
+
+
+@dataclass
+class GeometryMaps:
+    """Conditioning geometry of one view at the image's resolution.
+
+    Attributes:
+        nearness: normalised nearness ``[H,W,1]`` in [0, 1] over the mask (1 = nearest, 0 outside).
+        normals: unit normals ``[H,W,3]`` in the OpenCV camera frame (x right, y down, z forward); 0 outside.
+        mask: object mask ``[H,W,1]`` in [0, 1].
+    """
+
+    nearness: Tensor
+    normals: Tensor
+    mask: Tensor
+
+
+class GeometrySource(ABC):
+    """Produces :class:`GeometryMaps` for a view of a data set, given its source image and mask."""
+
+    @abstractmethod
+    def maps(self, dataset: OLATDataset, view: int, image: Tensor, mask: Tensor) -> GeometryMaps:
+        """Geometry of ``view``; ``image [H,W,3]`` linear radiance and ``mask [H,W,1]`` of the source photo."""
+
+    @abstractmethod
+    def key(self) -> dict:
+        """JSON identity of the source (kind and content hash of its weights), part of cache keys."""
+
+
+def normals_from_nearness(nearness: Tensor, mask: Tensor) -> Tensor:
+    """Camera-space normals of the height field ``h = s * nearness`` seen head-on: ``n ~ (-h_x, -h_y, -1)``.
+
+    ``s`` is the object's pixel extent ``sqrt(mask area)``, so a nearness ramp of 1 across the object reads
+    as a 45-degree slope. An approximation for sources that only give relative depth. ``[H,W,1] -> [H,W,3]``.
+    """
+    keep = (mask > 0.5).to(nearness.dtype)
+    scale = keep.sum().sqrt().clamp_min(1.0)
+    height = nearness[..., 0] * scale
+    padded = F.pad(height[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+    grad_x = (padded[1:-1, 2:] - padded[1:-1, :-2]) * 0.5
+    grad_y = (padded[2:, 1:-1] - padded[:-2, 1:-1]) * 0.5
+    normals = torch.stack([-grad_x, -grad_y, -torch.ones_like(grad_x)], dim=-1)
+    return F.normalize(normals, dim=-1) * keep
