@@ -1,0 +1,79 @@
+"""Configuration of the relighting diffusion model (pixel-space default or latent space on a pretrained SD)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+
+from diamond_sss.diffusion.common.sampling import SchedulerConfig
+
+LIGHT_CODE_DIM = 10
+"""9 SH coefficients (degree 2) of the light direction in the source camera frame + the light distance."""
+
+CONDITIONING_CHANNELS = 8
+"""Source image (3), depth (1), camera-space normals (3), mask (1)."""
+
+
+@dataclass(frozen=True)
+class RelightModelConfig:
+    """Architecture of a relighting model built by this project (``space="pixel"``) or on SD (``"latent"``).
+
+    Attributes:
+        space: ``"pixel"`` (denoise sRGB images in [-1, 1]) or ``"latent"`` (denoise VAE latents).
+        resolution: image side the model works at (pixels; conditioning maps are resized to it).
+        block_out_channels: UNet / ControlNet widths per resolution level (pixel space).
+        attention_levels: how many of the lowest-resolution levels have (self- and cross-) attention.
+        layers_per_block: ResNet layers per level.
+        attention_head_dim: channels per attention head.
+        cross_attention_dim: width of the light tokens the cross-attention layers read.
+        light_tokens: number of cross-attention tokens made from the light code(s).
+        use_source_light: also give the source light's code (timestep embedding and tokens).
+        norm_num_groups: GroupNorm groups.
+        scheduler: training noise schedule (v-prediction).
+    """
+
+    space: str = "pixel"
+    resolution: int = 64
+    block_out_channels: tuple[int, ...] = (16, 32, 64)
+    attention_levels: int = 1
+    layers_per_block: int = 1
+    attention_head_dim: int = 8
+    cross_attention_dim: int = 64
+    light_tokens: int = 4
+    use_source_light: bool = False
+    norm_num_groups: int = 8
+    scheduler: SchedulerConfig = field(default_factory=SchedulerConfig)
+
+    def __post_init__(self) -> None:
+        if self.space not in ("pixel", "latent"):
+            raise ValueError(f"space must be 'pixel' or 'latent', got {self.space!r}")
+        if self.resolution % (2 ** (len(self.block_out_channels) - 1)) != 0:
+            raise ValueError(f"resolution {self.resolution} must be divisible by "
+                             f"2^(levels - 1) = {2 ** (len(self.block_out_channels) - 1)}")
+        if not 1 <= self.attention_levels <= len(self.block_out_channels):
+            raise ValueError(f"attention_levels must be in [1, {len(self.block_out_channels)}], "
+                             f"got {self.attention_levels}")
+        if self.scheduler.prediction_type != "v_prediction":
+            raise ValueError("the relighting model is trained with v-prediction")
+
+    @property
+    def light_input_dim(self) -> int:
+        """Length of the code fed to the timestep embedding and the token MLP."""
+        return LIGHT_CODE_DIM * (2 if self.use_source_light else 1)
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        out["block_out_channels"] = list(self.block_out_channels)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict) -> RelightModelConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown relighting model config keys: {unknown}")
+        data = dict(data)
+        if "block_out_channels" in data:
+            data["block_out_channels"] = tuple(data["block_out_channels"])
+        if isinstance(data.get("scheduler"), dict):
+            data["scheduler"] = SchedulerConfig(**data["scheduler"])
+        return cls(**data)

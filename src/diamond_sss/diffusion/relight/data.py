@@ -1,0 +1,162 @@
+"""Fine-tuning samples ``(source image, depth, normals, target light, target image)`` with the view fixed.
+
+Taken from the embedded fine-tuning objects (``finetune/<object>``): every view that has at least
+``min_lights`` lit images gives all ordered (source, target) light pairs. The images used are recorded and
+must stay within ``max_fraction`` (7%) of a full capture (views x lights of the object's light stage).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from diamond_sss.data.dataset import OLATDataset
+from diamond_sss.data.embedded import FINETUNE_PREFIX, embedded_dataset, embedded_dataset_names
+from diamond_sss.data.errors import DataError
+from diamond_sss.diffusion.relight.conditioning import (
+    conditioning_image,
+    depth_to_nearness,
+    image_to_model,
+    world_to_camera_normals,
+)
+from diamond_sss.diffusion.relight.light import light_code
+
+MAX_FRACTION = 0.07
+
+
+@dataclass
+class RelightViews:
+    """Per-view tensors at the model resolution: ``V`` views, each seen under ``L`` lights.
+
+    Attributes:
+        maps: conditioning maps without the source image ``[V,5,R,R]`` (nearness, normals, mask).
+        images: target images in model space ``[V,L,3,R,R]``.
+        sources: the same images as linear radiance ``[V,L,R,R,3]`` (to build source conditioning).
+        codes: light codes ``[V,L,10]`` in each view's camera frame.
+        selection: the recorded images (object, view, light, path) and the fraction of a capture used.
+    """
+
+    maps: Tensor
+    images: Tensor
+    sources: Tensor
+    codes: Tensor
+    selection: dict
+
+    @property
+    def num_views(self) -> int:
+        return self.images.shape[0]
+
+    @property
+    def num_lights(self) -> int:
+        return self.images.shape[1]
+
+    def batch(self, view: Tensor, source: Tensor, target: Tensor) -> dict[str, Tensor]:
+        """Training batch for index tensors ``[B]``: conditioning ``[B,8,R,R]``, target, codes."""
+        maps = self.maps[view]
+        cond_source = image_to_model(self.sources[view, source])
+        return {
+            "conditioning": torch.cat([cond_source, maps], dim=1),
+            "target": self.images[view, target],
+            "source": self.images[view, source],
+            "target_code": self.codes[view, target],
+            "source_code": self.codes[view, source],
+            "maps": maps,
+        }
+
+    def random_indices(self, batch_size: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+        """Uniform (view, source light, target light != source light) triples."""
+        view = torch.randint(self.num_views, (batch_size,), generator=generator)
+        source = torch.randint(self.num_lights, (batch_size,), generator=generator)
+        shift = torch.randint(1, self.num_lights, (batch_size,), generator=generator)
+        return view, source, (source + shift) % self.num_lights
+
+
+def view_maps(dataset: OLATDataset, view: int, mask: Tensor, resolution: int) -> Tensor:
+    """Stored depth/normal maps of ``view`` as the 5 non-image conditioning channels ``[5,R,R]``."""
+    depth, normals = dataset.load_geometry_maps(view)
+    nearness = depth_to_nearness(depth[None], mask[None])
+    normals_cam = world_to_camera_normals(normals[None], dataset.viewmats[view][None])
+    cond = conditioning_image(torch.zeros_like(normals_cam), nearness, normals_cam, mask[None], resolution)
+    return cond[0, 3:]
+
+
+def _lit_views(dataset: OLATDataset, min_lights: int) -> dict[int, list[int]]:
+    """Observation indices of each view with ``>= min_lights`` images and stored geometry maps."""
+    by_view: dict[int, list[int]] = {}
+    for index, obs in enumerate(dataset.observations):
+        by_view.setdefault(obs.view, []).append(index)
+    return {v: ix for v, ix in by_view.items() if len(ix) >= min_lights and dataset.has_geometry_maps(v)}
+
+
+def finetune_object_names() -> list[str]:
+    """Embedded fine-tuning objects (``finetune/<object>``)."""
+    return [n for n in embedded_dataset_names() if n.startswith(FINETUNE_PREFIX)]
+
+
+def load_relight_views(roots: list[str | Path], resolution: int, min_lights: int = 4,
+                       max_fraction: float = MAX_FRACTION) -> RelightViews:
+    """Collect every view with ``>= min_lights`` images from the data folders ``roots``.
+
+    Every view keeps its first ``n`` images, ``n`` the smallest light count among the selected views.
+    Raises ``DataError`` when nothing usable is found or the selection exceeds ``max_fraction``.
+    """
+    datasets = [OLATDataset(root, "train") for root in roots]
+    lit_views = [_lit_views(dataset, min_lights) for dataset in datasets]
+    counts = [len(indices) for views in lit_views for indices in views.values()]
+    if not counts:
+        raise DataError(f"no view with >= {min_lights} lights and depth/normal maps in {[str(r) for r in roots]}")
+    per_view = min(counts)
+    maps, images, sources, codes, records = [], [], [], [], []
+    fractions = {}
+    for root, dataset, views in zip(roots, datasets, lit_views):
+        used = 0
+        for view, indices in sorted(views.items()):
+            indices = indices[:per_view]
+            rgb, mask = dataset.load_batch(indices)
+            lights = torch.tensor([dataset.observations[i].light for i in indices])
+            maps.append(view_maps(dataset, view, mask.amax(dim=0), resolution))
+            linear = F.interpolate(rgb.permute(0, 3, 1, 2), size=(resolution, resolution), mode="area")
+            linear = linear.permute(0, 2, 3, 1).contiguous()
+            sources.append(linear)
+            images.append(image_to_model(linear))
+            bounds = dataset.bounds
+            w2c = dataset.viewmats[view].expand(len(indices), 4, 4)
+            codes.append(light_code(dataset.light_positions[lights], w2c, bounds.center, bounds.radius))
+            used += len(indices)
+            records += [{"object": Path(root).name, "view": view, "light": int(light),
+                         "image": str(dataset.observations[i].image_path)} for i, light in zip(indices, lights)]
+        full = _full_capture_size(Path(root), dataset)
+        fractions[Path(root).name] = used / full
+        if used / full > max_fraction:
+            raise DataError(f"{root}: fine-tuning would use {used} of {full} images ({used / full:.1%}), "
+                            f"more than {max_fraction:.0%} of a capture")
+    return RelightViews(
+        maps=torch.stack(maps),
+        images=torch.stack(images),
+        sources=torch.stack(sources),
+        codes=torch.stack(codes),
+        selection={"images": records, "fraction_of_capture": fractions, "max_fraction": max_fraction},
+    )
+
+
+def load_finetune_views(resolution: int) -> RelightViews:
+    """:func:`load_relight_views` over all embedded fine-tuning objects."""
+    names = finetune_object_names()
+    if not names:
+        raise DataError("no embedded fine-tuning objects (finetune/<object>) are installed")
+    return load_relight_views([embedded_dataset(n) for n in names], resolution)
+
+
+def _full_capture_size(root: Path, dataset: OLATDataset) -> int:
+    """Views x lights of the full light stage (``meta.json``'s stage), else of the dataset's lattice."""
+    meta = root / "meta.json"
+    if meta.is_file():
+        stage = json.loads(meta.read_text()).get("stage", {})
+        if "views" in stage and "lights" in stage:
+            return int(stage["views"]) * int(stage["lights"])
+    return dataset.num_views * dataset.num_lights

@@ -1,0 +1,213 @@
+"""Relighting diffusion model: a UNet denoiser plus a ControlNet branch, both conditioned on the light code.
+
+The light code (``light.py``) enters (1) the timestep embedding of the UNet and of the ControlNet through
+diffusers' ``class_embed_type="projection"`` (``emb = time_mlp(t) + light_mlp(code)``) and (2) every
+cross-attention layer as ``light_tokens`` tokens made by a small MLP. The 8-channel conditioning image
+(source, depth, normals, mask) enters the ControlNet. The UNet predicts ``v`` (v-parameterisation).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import torch
+from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
+from torch import Tensor, nn
+
+from diamond_sss.diffusion.common.hashing import state_dict_hash
+from diamond_sss.diffusion.common.sampling import ddim_sample, make_ddim_scheduler, make_ddpm_scheduler
+from diamond_sss.diffusion.relight.config import CONDITIONING_CHANNELS, RelightModelConfig
+from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
+
+WEIGHTS_NAME = "model.safetensors"
+CONFIG_NAME = "config.json"
+
+
+class LightTokens(nn.Module):
+    """``code [B,D] -> tokens [B,T,C]``: an MLP plus a learned per-token offset."""
+
+    def __init__(self, code_dim: int, num_tokens: int, dim: int) -> None:
+        super().__init__()
+        self.num_tokens, self.dim = num_tokens, dim
+        self.mlp = nn.Sequential(nn.Linear(code_dim, dim), nn.SiLU(), nn.Linear(dim, num_tokens * dim))
+        self.offset = nn.Parameter(torch.randn(num_tokens, dim) * 0.02)
+
+    def forward(self, code: Tensor) -> Tensor:
+        return self.mlp(code).reshape(code.shape[0], self.num_tokens, self.dim) + self.offset
+
+
+class RelightDiffusion(nn.Module):
+    """UNet + ControlNet + light tokens (+ a frozen VAE in latent space).
+
+    Build it with :meth:`from_config` (pixel space, random weights), :meth:`from_pretrained_sd` (a local
+    Stable Diffusion folder) or :meth:`load` (a folder written by :meth:`save`).
+    """
+
+    def __init__(self, config: RelightModelConfig, unet: UNet2DConditionModel, controlnet: ControlNetModel,
+                 vae: AutoencoderKL | None = None) -> None:
+        super().__init__()
+        if (vae is None) != (config.space == "pixel"):
+            raise ValueError(f"a {config.space}-space model {'needs' if vae is None else 'takes no'} VAE")
+        self.config = config
+        self.unet = unet
+        self.controlnet = controlnet
+        self.light_tokens = LightTokens(config.light_input_dim, config.light_tokens, unet.config.cross_attention_dim)
+        self.vae = vae
+        if vae is not None:
+            vae.requires_grad_(False)
+        self.train_scheduler = make_ddpm_scheduler(config.scheduler)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_config(cls, config: RelightModelConfig, seed: int = 0) -> RelightDiffusion:
+        """Randomly initialised pixel-space model (deterministic under ``seed``)."""
+        if config.space != "pixel":
+            raise ValueError("from_config builds pixel-space models; use from_pretrained_sd for latent space")
+        levels = len(config.block_out_channels)
+        plain = levels - config.attention_levels
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            unet = UNet2DConditionModel(
+                sample_size=config.resolution,
+                in_channels=3,
+                out_channels=3,
+                down_block_types=("DownBlock2D",) * plain + ("CrossAttnDownBlock2D",) * config.attention_levels,
+                up_block_types=("CrossAttnUpBlock2D",) * config.attention_levels + ("UpBlock2D",) * plain,
+                block_out_channels=tuple(config.block_out_channels),
+                layers_per_block=config.layers_per_block,
+                attention_head_dim=config.attention_head_dim,
+                cross_attention_dim=config.cross_attention_dim,
+                norm_num_groups=config.norm_num_groups,
+                class_embed_type="projection",
+                projection_class_embeddings_input_dim=config.light_input_dim,
+            )
+            controlnet = ControlNetModel.from_unet(unet, conditioning_channels=CONDITIONING_CHANNELS,
+                                                   conditioning_embedding_out_channels=(16,))
+            return cls(config, unet, controlnet)
+
+    @classmethod
+    def from_pretrained_sd(cls, path: str | os.PathLike, config: RelightModelConfig | None = None,
+                           seed: int = 0) -> RelightDiffusion:
+        """Latent-space model on a local Stable Diffusion folder (``unet/`` and ``vae/`` in diffusers format).
+
+        The UNet keeps its weights and gains the light projection in its timestep embedding (new, random);
+        the ControlNet copies the UNet's encoder. Never downloads: ``path`` must exist.
+        """
+        path = Path(path)
+        for part in ("unet", "vae"):
+            if not (path / part / CONFIG_NAME).is_file():
+                raise FileNotFoundError(f"{path} is not a diffusers Stable Diffusion folder: "
+                                        f"missing {part}/{CONFIG_NAME}")
+        vae = AutoencoderKL.from_pretrained(path, subfolder="vae", local_files_only=True)
+        factor = 2 ** (len(vae.config.block_out_channels) - 1)
+        base = config or RelightModelConfig(space="latent", resolution=512)
+        config = RelightModelConfig.from_dict({**base.to_dict(), "space": "latent"})
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            unet = UNet2DConditionModel.from_pretrained(
+                path, subfolder="unet", local_files_only=True, low_cpu_mem_usage=False,
+                class_embed_type="projection", projection_class_embeddings_input_dim=config.light_input_dim,
+            )
+            config = RelightModelConfig.from_dict({**config.to_dict(),
+                                                   "cross_attention_dim": unet.config.cross_attention_dim})
+            embedding = tuple(16 * 2**i for i in range(factor.bit_length()))
+            controlnet = ControlNetModel.from_unet(unet, conditioning_channels=CONDITIONING_CHANNELS,
+                                                   conditioning_embedding_out_channels=embedding)
+            return cls(config, unet, controlnet, vae)
+
+    def save(self, folder: str | os.PathLike, half: bool = False) -> Path:
+        """Write ``config.json`` (this config and the diffusers sub-configs) and ``model.safetensors``."""
+        folder = Path(folder)
+        state = {k: (v.half() if half and v.is_floating_point() else v) for k, v in self.state_dict().items()}
+        atomic_save_safetensors(folder / WEIGHTS_NAME, state)
+        atomic_write_json(folder / CONFIG_NAME, {
+            "relight": self.config.to_dict(),
+            "unet": dict(self.unet.config),
+            "controlnet": dict(self.controlnet.config),
+            "vae": dict(self.vae.config) if self.vae is not None else None,
+        })
+        return folder
+
+    @classmethod
+    def load(cls, folder: str | os.PathLike) -> RelightDiffusion:
+        """Rebuild a model written by :meth:`save` (weights cast to float32)."""
+        folder = Path(folder)
+        for name in (CONFIG_NAME, WEIGHTS_NAME):
+            if not (folder / name).is_file():
+                raise FileNotFoundError(f"relighting model folder {folder} has no {name}")
+        configs = json.loads((folder / CONFIG_NAME).read_text())
+        config = RelightModelConfig.from_dict(configs["relight"])
+        unet = UNet2DConditionModel.from_config(configs["unet"])
+        controlnet = ControlNetModel.from_config(configs["controlnet"])
+        vae = AutoencoderKL.from_config(configs["vae"]) if configs.get("vae") else None
+        model = cls(config, unet, controlnet, vae)
+        state = {k: v.float() if v.is_floating_point() else v for k, v in load_safetensors(folder / WEIGHTS_NAME).items()}
+        model.load_state_dict(state)
+        return model.eval()
+
+    def weights_hash(self) -> str:
+        """Content hash of the config and weights (cache key)."""
+        return state_dict_hash({**self.state_dict(), "config": torch.tensor(list(
+            json.dumps(self.config.to_dict(), sort_keys=True).encode()), dtype=torch.uint8)})
+
+    # ------------------------------------------------------------------ spaces
+    @property
+    def alphas_cumprod(self) -> Tensor:
+        return self.train_scheduler.alphas_cumprod
+
+    def encode(self, image: Tensor) -> Tensor:
+        """Model-space image ``[B,3,R,R]`` (in [-1, 1]) -> denoised variable (itself, or scaled VAE latents)."""
+        if self.vae is None:
+            return image
+        return self.vae.encode(image).latent_dist.mode() * self.vae.config.scaling_factor
+
+    def decode(self, sample: Tensor) -> Tensor:
+        """Inverse of :meth:`encode`."""
+        if self.vae is None:
+            return sample
+        return self.vae.decode(sample / self.vae.config.scaling_factor).sample
+
+    def sample_shape(self, batch: int) -> tuple[int, int, int, int]:
+        side = self.unet.config.sample_size if self.vae is None else self.config.resolution // (
+            2 ** (len(self.vae.config.block_out_channels) - 1))
+        return batch, self.unet.config.in_channels, side, side
+
+    # ------------------------------------------------------------------ network
+    def light_input(self, target_code: Tensor, source_code: Tensor | None) -> Tensor:
+        """The code the network reads: target code, followed by the source code when the config uses it."""
+        if target_code.ndim != 2 or target_code.shape[-1] * (2 if self.config.use_source_light else 1) != \
+                self.config.light_input_dim:
+            raise ValueError(f"target_code must be [B, 10], got {tuple(target_code.shape)}")
+        if not self.config.use_source_light:
+            return target_code
+        if source_code is None or source_code.shape != target_code.shape:
+            raise ValueError("this model also needs the source light's code, shaped like target_code")
+        return torch.cat([target_code, source_code], dim=-1)
+
+    def forward(self, noisy: Tensor, timesteps: Tensor, conditioning: Tensor, target_code: Tensor,
+                source_code: Tensor | None = None) -> Tensor:
+        """Velocity prediction ``v [B,C,h,w]`` for ``noisy [B,C,h,w]`` at ``timesteps [B]``.
+
+        ``conditioning [B,8,R,R]`` (see ``conditioning.py``); ``target_code [B,10]`` (and ``source_code``).
+        """
+        if conditioning.ndim != 4 or conditioning.shape[1] != CONDITIONING_CHANNELS:
+            raise ValueError(f"conditioning must be [B, {CONDITIONING_CHANNELS}, H, W], "
+                             f"got {tuple(conditioning.shape)}")
+        code = self.light_input(target_code, source_code)
+        tokens = self.light_tokens(code)
+        down, mid = self.controlnet(noisy, timesteps, encoder_hidden_states=tokens, controlnet_cond=conditioning,
+                                    class_labels=code, return_dict=False)
+        return self.unet(noisy, timesteps, encoder_hidden_states=tokens, class_labels=code,
+                         down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
+
+    @torch.no_grad()
+    def relight(self, conditioning: Tensor, target_code: Tensor, source_code: Tensor | None = None,
+                num_steps: int = 20, generator: torch.Generator | None = None) -> Tensor:
+        """DDIM (eta 0) sample of the relit image in model space ``[B,3,R,R]`` (noise drawn from ``generator``)."""
+        scheduler = make_ddim_scheduler(self.config.scheduler)
+        device = conditioning.device
+        sample = ddim_sample(lambda x, t: self(x, t, conditioning, target_code, source_code),
+                             self.sample_shape(conditioning.shape[0]), scheduler, num_steps, generator, device)
+        return self.decode(sample).clamp(-1.0, 1.0)

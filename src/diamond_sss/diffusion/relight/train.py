@@ -1,0 +1,172 @@
+"""Fine-tuning loop of the relighting model (accelerate, EMA, atomic checkpoints, resume)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import torch
+from accelerate import Accelerator
+from torch import Tensor, nn
+
+from diamond_sss.diffusion.common.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from diamond_sss.diffusion.common.ema import EMA
+from diamond_sss.diffusion.common.targets import predicted_clean, v_target
+from diamond_sss.diffusion.relight.data import RelightViews
+from diamond_sss.diffusion.relight.losses import RelightLossWeights, image_losses
+from diamond_sss.diffusion.relight.model import RelightDiffusion
+from diamond_sss.utils.io import atomic_write_json
+
+
+@dataclass(frozen=True)
+class RelightTrainConfig:
+    """Fine-tuning settings.
+
+    Attributes:
+        steps: optimisation steps.
+        batch_size: (source, target) pairs per step.
+        learning_rate: AdamW peak learning rate, reached after ``warmup_steps`` (linear), then cosine to 10%.
+        warmup_steps: linear warm-up length.
+        weight_decay: AdamW weight decay.
+        ema_decay: EMA decay of the shipped weights.
+        cycle_every: compute the cycle-consistency term every this many steps (it doubles a step's cost).
+        checkpoint_every: steps between atomic checkpoints.
+        log_every: steps between log lines.
+        seed: seed of initialisation, batches, timesteps and noise.
+        mixed_precision: accelerate's ``"no"``, ``"fp16"`` or ``"bf16"`` (GPU).
+        time_limit_s: stop early (checkpoint and weights written) once this much wall time has passed.
+        losses: loss weights.
+    """
+
+    steps: int = 2000
+    batch_size: int = 8
+    learning_rate: float = 5e-4
+    warmup_steps: int = 50
+    weight_decay: float = 1e-4
+    ema_decay: float = 0.995
+    cycle_every: int = 4
+    checkpoint_every: int = 100
+    log_every: int = 10
+    seed: int = 0
+    mixed_precision: str = "no"
+    time_limit_s: float | None = None
+    losses: RelightLossWeights = field(default_factory=RelightLossWeights)
+
+
+def step_generator(seed: int, step: int) -> torch.Generator:
+    """CPU generator of one step's random draws (a pure function of seed and step, so resume is exact)."""
+    return torch.Generator().manual_seed(seed * 1_000_003 + step)
+
+
+def training_loss(model: RelightDiffusion, batch: dict[str, Tensor], weights: RelightLossWeights,
+                  generator: torch.Generator, with_cycle: bool, lpips: nn.Module | None = None
+                  ) -> tuple[Tensor, dict[str, float]]:
+    """Total loss of one batch (see ``losses.py``) and its unweighted terms.
+
+    Timesteps and noise come from ``generator`` (CPU) and are moved to the batch's device.
+    """
+    device = batch["target"].device
+    target = model.encode(batch["target"])
+    count = target.shape[0]
+    alphas = model.alphas_cumprod
+    timesteps = torch.randint(0, alphas.shape[0], (count,), generator=generator).to(device)
+    noise = torch.randn(target.shape, generator=generator).to(device=device, dtype=target.dtype)
+    noisy = model.train_scheduler.add_noise(target, noise, timesteps)
+    v = model(noisy, timesteps, batch["conditioning"], batch["target_code"], batch["source_code"])
+    terms = {"v_mse": (v.float() - v_target(target, noise, alphas, timesteps)).square().mean()}
+    clean = model.decode(predicted_clean(noisy, v.float(), alphas, timesteps))
+    terms.update(image_losses(clean, batch["target"], weights, lpips))
+    if with_cycle:
+        back_conditioning = torch.cat([clean, batch["maps"]], dim=1)
+        source = model.encode(batch["source"])
+        back_noise = torch.randn(source.shape, generator=generator).to(device=device, dtype=source.dtype)
+        back_noisy = model.train_scheduler.add_noise(source, back_noise, timesteps)
+        back_v = model(back_noisy, timesteps, back_conditioning, batch["source_code"], batch["target_code"])
+        back_clean = model.decode(predicted_clean(back_noisy, back_v.float(), alphas, timesteps))
+        terms["cycle"] = (back_clean - batch["source"]).abs().mean()
+    total = sum(getattr(weights, name) * value for name, value in terms.items())
+    return total, {name: float(value.detach()) for name, value in terms.items()}
+
+
+def lr_factor(step: int, warmup: int, total: int) -> float:
+    """Linear warm-up to 1, then cosine decay to 0.1 at ``total``."""
+    if step < warmup:
+        return (step + 1) / warmup
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    return 0.1 + 0.45 * (1.0 + math.cos(math.pi * progress))
+
+
+def finetune(views: RelightViews, out: str | os.PathLike, model: RelightDiffusion, config: RelightTrainConfig,
+             lpips: nn.Module | None = None, resume: bool = True,
+             log: Callable[[dict], None] | None = None) -> Path:
+    """Fine-tune ``model`` on ``views``; writes ``out/checkpoints/step_*``, ``out/log.jsonl``,
+    ``out/selection.json`` and the EMA weights as ``out/model`` (see :meth:`RelightDiffusion.save`).
+
+    With ``resume`` the newest complete checkpoint under ``out/checkpoints`` is restored (model, optimizer,
+    schedule, EMA) and training continues from its step with the same batches it would have drawn.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out / "selection.json", views.selection)
+    atomic_write_json(out / "train_config.json", asdict(config))
+    accelerator = Accelerator(mixed_precision=config.mixed_precision, cpu=not torch.cuda.is_available())
+    trainable = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.AdamW(trainable, lr=config.learning_rate, weight_decay=config.weight_decay)
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda step: lr_factor(step, config.warmup_steps, config.steps))
+    model, optimizer, schedule = accelerator.prepare(model, optimizer, schedule)
+    unwrapped = accelerator.unwrap_model(model)
+    ema = EMA(unwrapped, decay=config.ema_decay)
+    accelerator.register_for_checkpointing(ema)
+    if lpips is not None:
+        lpips = lpips.to(accelerator.device).requires_grad_(False)
+    start = 0
+    checkpoint_root = out / "checkpoints"
+    if resume and (found := latest_checkpoint(checkpoint_root)) is not None:
+        start = int(load_checkpoint(accelerator, found)["step"])
+    device = accelerator.device
+    data = {k: v.to(device) for k, v in asdict_views(views).items()}
+    on_device = RelightViews(**data, selection=views.selection)
+    model.train()
+    started = time.time()
+    for step in range(start, config.steps):
+        generator = step_generator(config.seed, step)
+        batch = on_device.batch(*[i.to(device) for i in on_device.random_indices(config.batch_size, generator)])
+        with accelerator.autocast():
+            loss, terms = training_loss(unwrapped, batch, config.losses, generator,
+                                        with_cycle=config.cycle_every > 0 and step % config.cycle_every == 0,
+                                        lpips=lpips)
+        optimizer.zero_grad(set_to_none=True)
+        accelerator.backward(loss)
+        accelerator.clip_grad_norm_(trainable, 1.0)
+        optimizer.step()
+        schedule.step()
+        ema.update(unwrapped)
+        done = step + 1
+        if log is not None and (done % config.log_every == 0 or done == config.steps):
+            record = {"step": done, "loss": float(loss.detach()), **terms, "lr": schedule.get_last_lr()[0],
+                      "elapsed_s": time.time() - started}
+            with open(out / "log.jsonl", "a") as handle:
+                handle.write(json.dumps(record) + "\n")
+            log(record)
+        out_of_time = config.time_limit_s is not None and time.time() - started > config.time_limit_s
+        if done % config.checkpoint_every == 0 or done == config.steps or out_of_time:
+            save_checkpoint(accelerator, checkpoint_root, done)
+            with ema.averaged(unwrapped):
+                unwrapped.save(out / "model")
+        if out_of_time:
+            break
+    if start >= config.steps:
+        with ema.averaged(unwrapped):
+            unwrapped.save(out / "model")
+    return out / "model"
+
+
+def asdict_views(views: RelightViews) -> dict[str, Tensor]:
+    """The tensor fields of ``views``."""
+    return {"maps": views.maps, "images": views.images, "sources": views.sources, "codes": views.codes}
