@@ -192,8 +192,9 @@ def test_tiny_study_end_to_end_on_sqlite(capture, tmp_path):
     assert (config.num_gaussians, config.init, config.lambda_sil) == (64, "random", 0.0)
     assert "iterations" not in json.loads((out / "best_config.json").read_text())
     assert len((out / "trials.csv").read_text().splitlines()) == 4
-    main(["train", "--data", str(capture), "--out", str(tmp_path / "run"), "--config", str(out / "best_config.json"),
-          "--iterations", "1", "--device", "cpu", "--quiet"])
+    main(["train", "--data", str(capture), "--out", str(tmp_path / "run"),
+          "--config", str(out / "best_config.json"), "--iterations", "1", "--device", "cpu", "--quiet"])
     assert (tmp_path / "run" / "model.safetensors").is_file()
     with pytest.raises(ValueError, match="created with other settings \\(iterations"):
-        tune(capture, out, trials=3, iterations=5, report_every=1, validation_images=1, set_=sets, device="cpu")
+        tune(capture, out, trials=3, iterations=5, report_every=1, validation_images=1, set_=sets,
+             device="cpu")

@@ -50,7 +50,8 @@ def postgres_url():
     pytest.importorskip("psycopg2", reason="psycopg2 is not installed (the 'tune' extra)")
     bin_dir = _postgres_bin()
     if bin_dir is None:
-        setup = subprocess.run(["bash", str(ROOT / "scripts" / "ci_postgres.sh")], check=False, capture_output=True, text=True)
+        setup = subprocess.run(["bash", str(ROOT / "scripts" / "ci_postgres.sh")], check=False,
+                               capture_output=True, text=True)
         bin_dir = _postgres_bin()
         if bin_dir is None:
             pytest.skip(f"PostgreSQL cannot be installed: {(setup.stdout + setup.stderr)[-400:]}")
@@ -87,10 +88,11 @@ def capture(tmp_path_factory):
 def _start_worker(capture: Path, out: Path, url: str, study: str, worker: int, trials: int,
                   iterations: int) -> subprocess.Popen:
     out.mkdir(parents=True, exist_ok=True)
-    command = [sys.executable, "-m", "diamond_sss.cli.tune_commands", "--data", str(capture), "--out", str(out),
-               "--storage", url, "--study", study, "--trials", str(trials), "--iterations", str(iterations),
-               "--report-every", "1", "--validation-images", "1", "--worker", str(worker), "--device", "cpu",
-               "--heartbeat-interval", str(HEARTBEAT), *[arg for item in TINY_SETS for arg in ("--set", item)]]
+    command = [sys.executable, "-m", "diamond_sss.cli.tune_commands", "--data", str(capture),
+               "--out", str(out), "--storage", url, "--study", study, "--trials", str(trials),
+               "--iterations", str(iterations), "--report-every", "1", "--validation-images", "1",
+               "--worker", str(worker), "--device", "cpu", "--heartbeat-interval", str(HEARTBEAT),
+               *[arg for item in TINY_SETS for arg in ("--set", item)]]
     log = open(out / "worker.log", "w")  # noqa: SIM115 (closed with the process)
     return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
 
@@ -114,7 +116,8 @@ def shared_study(postgres_url, capture, tmp_path_factory):
     storage = make_storage(StudySettings(storage=postgres_url, heartbeat_interval=HEARTBEAT))
     deadline, victim = time.monotonic() + 180, None
     while victim is None:
-        assert a.poll() is None and time.monotonic() < deadline, (base / "a" / "worker.log").read_text()[-3000:]
+        log = (base / "a" / "worker.log").read_text()[-3000:]
+        assert a.poll() is None and time.monotonic() < deadline, log
         time.sleep(0.2)
         try:
             running = optuna.load_study(study_name="shared", storage=storage).get_trials(
@@ -125,12 +128,14 @@ def shared_study(postgres_url, capture, tmp_path_factory):
     a.kill()  # no clean-up: the trial stays RUNNING until its heartbeat is stale
     a.wait()
     state_after_kill = optuna.load_study(study_name="shared", storage=storage).trials[victim.number].state
-    tune(capture, base / "r", trials=n_trials, storage=postgres_url, study="shared", iterations=3, report_every=1,
-         validation_images=1, worker=2, device="cpu", heartbeat_interval=HEARTBEAT, set_=TINY_SETS)
+    tune(capture, base / "r", trials=n_trials, storage=postgres_url, study="shared", iterations=3,
+         report_every=1, validation_images=1, worker=2, device="cpu", heartbeat_interval=HEARTBEAT,
+         set_=TINY_SETS)
     _finish(b, base / "b")
     trials = optuna.load_study(study_name="shared", storage=storage).trials
-    return {"n_trials": n_trials, "trials": trials, "victim": victim.number, "state_after_kill": state_after_kill,
-            "pids": {"a": a.pid, "b": b.pid, "r": os.getpid()}, "out": base}
+    return {"n_trials": n_trials, "trials": trials, "victim": victim.number,
+            "state_after_kill": state_after_kill, "pids": {"a": a.pid, "b": b.pid, "r": os.getpid()},
+            "out": base}
 
 
 def test_workers_share_one_study_without_losing_or_duplicating_trials(shared_study):

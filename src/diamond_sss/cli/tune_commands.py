@@ -9,7 +9,7 @@ import tyro
 from rich.console import Console
 
 SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
-                  tyro.conf.arg(name="set", help="fix a config key of every trial: --set key=value (repeatable)")]
+                  tyro.conf.arg(name="set", help="fix a config key of all trials: --set key=value")]
 
 
 def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: str | None = None,
@@ -22,10 +22,10 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
 
     Each trial trains --iterations steps and is scored by PSNR on images held out of the regime's
     TRAINING images (never the test split), reported every --report-every steps to a median pruner
-    (never at the first report).
-    Writes to --out: parallel_coordinate.png (Fig. 5), tab4.md (original vs best), best_config.json
-    (for `diamond-sss train --config`), best_trial.json and trials.csv. Several workers (machines) share
-    one study when they get the same --storage URL (PostgreSQL) and --study name; --trials is the total.
+    (never at the first report). Writes to --out: parallel_coordinate.png (Fig. 5), tab4.md (original
+    vs best), best_config.json (for `diamond-sss train --config`), best_trial.json and trials.csv.
+    Several workers (machines) share one study when they get the same --storage URL (PostgreSQL) and
+    --study name; --trials is the total. A trial whose worker dies is re-run by another worker.
 
     Args:
         data: data folder holding transforms_<split>.json.
@@ -62,21 +62,24 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
             raise ValueError(f"--set expects key=value, got '{item}'")
         key, text = (part.strip() for part in item.split("=", 1))
         if key in SEARCH_SPACE or key == "iterations":
-            raise ValueError(f"--set {key}: '{key}' is {'searched' if key in SEARCH_SPACE else '--iterations'}")
+            reason = "searched" if key in SEARCH_SPACE else "set by --iterations"
+            raise ValueError(f"--set {key}: '{key}' is {reason}")
         overrides[key] = parse_value(key, text)
     objective_settings = ObjectiveSettings(preset=preset, overrides=overrides, iterations=iterations,
                                            report_every=report_every, schedule_scale=schedule_scale)
-    tune_data = load_tune_data(data, split=split, regime=regime, seed=seed, validation_images=validation_images,
+    tune_data = load_tune_data(data, split=split, regime=regime, seed=seed,
+                               validation_images=validation_images,
                                downscale=float(overrides.get("downscale", 1.0)))
     study_settings = StudySettings(storage=storage or default_storage(out), study_name=study, seed=seed,
                                    worker=worker, pruner_startup_trials=pruner_startup_trials,
-                                   pruner_warmup_steps=report_every + 1, heartbeat_interval=heartbeat_interval,
-                                   enqueue_presets=enqueue_presets)
+                                   pruner_warmup_steps=report_every + 1,
+                                   heartbeat_interval=heartbeat_interval, enqueue_presets=enqueue_presets)
     optuna_study = open_study(study_settings, objective_settings.fingerprint(tune_data))
     console = Console()
     if not report_only:
         objective = Objective(tune_data, objective_settings, Path(out) / "trials")
-        ran = run_worker(optuna_study, objective, trials, timeout=timeout, poll_seconds=heartbeat_interval / 2)
+        ran = run_worker(optuna_study, objective, trials, timeout=timeout,
+                         poll_seconds=heartbeat_interval / 2)
         console.print(f"worker {worker} ran trials {ran}")
     paths = write_report(optuna_study, out)
     best = optuna_study.best_trial

@@ -9,7 +9,8 @@ from diamond_sss.tuning.study import StudySettings, default_storage, open_study,
 from diamond_sss.tuning.validation import TuneData, holdout_positions, load_tune_data, validation_psnr
 
 __all__ = [
-    "SCHEDULE_KEYS", "SEARCH_SPACE", "Objective", "ObjectiveSettings", "ParamRange", "StudySettings", "TuneData",
-    "best_config", "default_storage", "holdout_positions", "load_tune_data", "open_study", "preset_params",
-    "run_worker", "save_parallel_coordinate", "suggest_params", "tab4_markdown", "validation_psnr", "write_report",
+    "SCHEDULE_KEYS", "SEARCH_SPACE", "Objective", "ObjectiveSettings", "ParamRange", "StudySettings",
+    "TuneData", "best_config", "default_storage", "holdout_positions", "load_tune_data", "open_study",
+    "preset_params", "run_worker", "save_parallel_coordinate", "suggest_params", "tab4_markdown",
+    "validation_psnr", "write_report",
 ]

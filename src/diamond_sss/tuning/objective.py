@@ -74,7 +74,8 @@ class ObjectiveSettings:
         """What every worker of one study must share (JSON-normalised; the device may differ)."""
         record = {
             "preset": self.preset, "iterations": self.iterations, "report_every": self.report_every,
-            "schedule_scale": self.scale, "overrides": {k: v for k, v in self.overrides.items() if k != "device"},
+            "schedule_scale": self.scale,
+            "overrides": {k: v for k, v in self.overrides.items() if k != "device"},
             "data": data.describe(), "space": {k: [r.low, r.high, r.log, r.step] for k, r in space.items()},
         }
         return json.loads(json.dumps(record))

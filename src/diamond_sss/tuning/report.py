@@ -19,7 +19,8 @@ from diamond_sss.tuning.space import BEST_PRESET, ORIGINAL_PRESET, SEARCH_SPACE,
 from diamond_sss.utils.io import atomic_write, atomic_write_json, atomic_write_text
 
 # keys of a trial's configuration that belong to the run, not to the method (left to the preset / CLI)
-RUN_KEYS = ("iterations", "seed", "device", "checkpoint_every", "log_every", "image_log_every", "lpips_weights")
+RUN_KEYS = ("iterations", "seed", "device", "checkpoint_every", "log_every", "image_log_every",
+            "lpips_weights")
 
 
 def format_value(value: Any) -> str:
@@ -39,7 +40,8 @@ def comparison_table(columns: Sequence[tuple[str, Mapping[str, Any]]], keys: Seq
     lines = ["| Hyperparameter | " + " | ".join(title for title, _ in columns) + " |",
              "|---|" + "---:|" * len(columns)]
     for key in keys:
-        lines.append(f"| {key} | " + " | ".join(format_value(values.get(key)) for _, values in columns) + " |")
+        cells = [format_value(values.get(key)) for _, values in columns]
+        lines.append(f"| {key} | " + " | ".join(cells) + " |")
     if scores is not None:
         cells = ["-" if s is None else f"{s:.2f}" for s in scores]
         lines.append("| validation PSNR (dB) | " + " | ".join(cells) + " |")
@@ -63,12 +65,14 @@ def tab4_markdown(study: optuna.Study, space: Mapping[str, ParamRange] = SEARCH_
     columns = [("Original (sss3dgs)", preset_params(ORIGINAL_PRESET, space)),
                (f"Best (trial {best.number})", best.params),
                ("Paper best (diamond)", preset_params(BEST_PRESET, space))]
-    scores = [None if original is None else original.value, best.value, None if paper is None else paper.value]
+    scores = [None if t is None else t.value for t in (original, best, paper)]
     settings = study.user_attrs.get("settings", {})
-    header = (f"Study `{study.study_name}`: {len(completed_trials(study))} completed of {len(study.trials)} trials; "
-              f"validation PSNR on {settings.get('data', {}).get('validation_images', '?')} held-out training "
-              f"images; trials of {settings.get('iterations', '?')} steps, schedule keys scaled by "
-              f"{format_value(settings.get('schedule_scale'))} (values below are full-schedule).\n\n")
+    validation = settings.get("data", {}).get("validation_images", "?")
+    header = (f"Study `{study.study_name}`: {len(completed_trials(study))} completed of {len(study.trials)} "
+              f"trials on the `{settings.get('preset', '?')}` preset; validation PSNR on {validation} "
+              f"held-out training images after {settings.get('iterations', '?')} steps (schedule keys "
+              f"scaled by {format_value(settings.get('schedule_scale'))}; the table gives full-schedule "
+              "values).\n\n")
     return header + comparison_table(columns, list(space), scores)
 
 
@@ -99,7 +103,8 @@ def save_parallel_coordinate(study: optuna.Study, path: Path,
             study, params=list(space), target_name="validation PSNR (dB)")
     figure = axes.get_figure()
     figure.set_size_inches(max(12.0, 1.1 * len(space)), 6.0)
-    axes.set_title(f"Parallel coordinates of study '{study.study_name}' (lighter: higher validation PSNR)")
+    axes.set_title(f"Study '{study.study_name}': one line per completed trial, coloured by validation PSNR",
+                   pad=18)
     figure.tight_layout()
     atomic_write(path, lambda tmp: figure.savefig(tmp, format="png", dpi=100))
     plt.close(figure)
@@ -119,7 +124,8 @@ def trials_csv(trials: Sequence[FrozenTrial], keys: Sequence[str]) -> str:
     return buffer.getvalue()
 
 
-def write_report(study: optuna.Study, out: Path, space: Mapping[str, ParamRange] = SEARCH_SPACE) -> dict[str, Path]:
+def write_report(study: optuna.Study, out: Path,
+                 space: Mapping[str, ParamRange] = SEARCH_SPACE) -> dict[str, Path]:
     """``parallel_coordinate.png``, ``tab4.md``, ``best_config.json``, ``best_trial.json`` and ``trials.csv``.
 
     Raises ``ValueError`` while the study has no completed trial.

@@ -56,10 +56,12 @@ SEARCH_SPACE: dict[str, ParamRange] = {
     "densify_grad_threshold": ParamRange(0.0001, 0.002, log=True),
 }
 
-SCHEDULE_KEYS = ("densification_interval", "opacity_reset_interval", "densify_from_iter", "densify_until_iter")
+SCHEDULE_KEYS = ("densification_interval", "opacity_reset_interval", "densify_from_iter",
+                 "densify_until_iter")
 
 
-def distributions(space: Mapping[str, ParamRange] = SEARCH_SPACE) -> dict[str, optuna.distributions.BaseDistribution]:
+def distributions(
+        space: Mapping[str, ParamRange] = SEARCH_SPACE) -> dict[str, optuna.distributions.BaseDistribution]:
     """Optuna distributions of ``space`` by key (types from ``TrainConfig``); unknown keys are errors."""
     types = field_types()
     unknown = sorted(set(space) - set(types))
@@ -98,4 +100,5 @@ def scale_schedule(params: Mapping[str, Any], scale: float) -> dict[str, Any]:
     """``params`` with every :data:`SCHEDULE_KEYS` value multiplied by ``scale`` (rounded, at least 1)."""
     if scale <= 0:
         raise ValueError(f"schedule scale must be positive, got {scale}")
-    return {key: max(1, round(value * scale)) if key in SCHEDULE_KEYS else value for key, value in params.items()}
+    return {key: max(1, round(value * scale)) if key in SCHEDULE_KEYS else value
+            for key, value in params.items()}

@@ -76,7 +76,8 @@ def _retry_callback(max_retry: int) -> tuple[str, Callable[[optuna.Study, Frozen
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         warnings.simplefilter("ignore", FutureWarning)
         if hasattr(optuna.storages, "RetryHeartbeatStaleTrialCallback"):
-            return "heartbeat_stale_trial_callback", optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry)
+            callback = optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry)
+            return "heartbeat_stale_trial_callback", callback
         return "failed_trial_callback", optuna.storages.RetryFailedTrialCallback(max_retry)
 
 
@@ -119,12 +120,13 @@ def open_study(settings: StudySettings, fingerprint: dict[str, Any]) -> optuna.S
         study = optuna.create_study(storage=storage, study_name=settings.study_name, direction="maximize",
                                     sampler=sampler, pruner=pruner)
     except optuna.exceptions.DuplicatedStudyError:
-        study = optuna.load_study(study_name=settings.study_name, storage=storage, sampler=sampler, pruner=pruner)
+        study = optuna.load_study(study_name=settings.study_name, storage=storage, sampler=sampler,
+                                  pruner=pruner)
         recorded = _wait_for_fingerprint(study)
         if recorded != fingerprint:
-            changed = sorted(k for k in set(recorded) | set(fingerprint) if recorded.get(k) != fingerprint.get(k))
-            raise ValueError(f"study '{settings.study_name}' was created with other settings ({', '.join(changed)}); "
-                             f"use the same options or another --study name")
+            changed = sorted(k for k in {*recorded, *fingerprint} if recorded.get(k) != fingerprint.get(k))
+            raise ValueError(f"study '{settings.study_name}' was created with other settings "
+                             f"({', '.join(changed)}); use the same options or another --study name")
         return study
     if settings.enqueue_presets:
         for preset in (ORIGINAL_PRESET, BEST_PRESET):
@@ -138,7 +140,8 @@ def _wait_for_fingerprint(study: optuna.Study, timeout: float = 60.0) -> dict[st
     deadline = time.monotonic() + timeout
     while "settings" not in study.user_attrs:
         if time.monotonic() > deadline:
-            raise ValueError(f"study '{study.study_name}' has no recorded settings: was it made by diamond-sss tune?")
+            raise ValueError(f"study '{study.study_name}' has no recorded settings: "
+                             "was it made by diamond-sss tune?")
         time.sleep(0.2)
     return study.user_attrs["settings"]
 

@@ -75,7 +75,7 @@ class TuneData:
 
 def load_tune_data(data: Path, *, split: str = "train", regime: str = "all", seed: int = 0,
                    validation_images: int | None = None, downscale: float = 1.0) -> TuneData:
-    """Select the regime's images of ``split`` and hold out the validation images (:func:`holdout_positions`)."""
+    """Select the regime's images of ``split``; hold out the validation images (:func:`holdout_positions`)."""
     if split == "test":
         raise ValueError("a study never looks at the test split: tune on the training split")
     dataset = OLATDataset(data, split, downscale=downscale)
@@ -86,7 +86,8 @@ def load_tune_data(data: Path, *, split: str = "train", regime: str = "all", see
     held = set(holdout_positions(pairs, count, seed))
     train = [obs for position, obs in enumerate(observations) if position not in held]
     validation = [obs for position, obs in enumerate(observations) if position in held]
-    return TuneData(train=dataset.subset(train), validation=dataset.subset(validation), regime=regime, seed=seed)
+    return TuneData(train=dataset.subset(train), validation=dataset.subset(validation), regime=regime,
+                    seed=seed)
 
 
 @torch.no_grad()
