@@ -48,16 +48,21 @@ DenoiseFn = Callable[[Tensor, Tensor], Tensor]
 @torch.no_grad()
 def ddim_sample(denoise: DenoiseFn, shape: tuple[int, ...], scheduler: DDIMScheduler, num_steps: int,
                 generator: torch.Generator | None = None, device: torch.device | str = "cpu",
-                dtype: torch.dtype = torch.float32) -> Tensor:
+                dtype: torch.dtype = torch.float32, noise: Tensor | None = None) -> Tensor:
     """Run ``num_steps`` DDIM steps (eta = 0) from Gaussian noise of ``shape``.
 
     ``denoise(x_t [B,...], t [B]) -> model output`` in the scheduler's parameterisation. The initial noise
-    is drawn on the CPU from ``generator`` so a seed gives the same sample on every device.
+    is ``noise`` when given, else drawn on the CPU from ``generator`` so a seed gives the same sample on
+    every device.
     """
     if num_steps < 1:
         raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+    if noise is not None and tuple(noise.shape) != tuple(shape):
+        raise ValueError(f"noise has shape {tuple(noise.shape)}, expected {tuple(shape)}")
     scheduler.set_timesteps(num_steps, device=device)
-    sample = torch.randn(shape, generator=generator, dtype=torch.float32).to(device=device, dtype=dtype)
+    if noise is None:
+        noise = torch.randn(shape, generator=generator, dtype=torch.float32)
+    sample = noise.to(device=device, dtype=dtype)
     sample = sample * scheduler.init_noise_sigma
     for t in scheduler.timesteps:
         timesteps = torch.full((shape[0],), int(t), device=device, dtype=torch.long)

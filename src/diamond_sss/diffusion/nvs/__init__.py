@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from diamond_sss.diffusion.nvs.model import NVSBatch, NVSConfig, NVSModel, model_hash, shared_noise
+from diamond_sss.diffusion.nvs.model import NVSBatch, NVSConfig, NVSModel, shared_noise
 from diamond_sss.diffusion.nvs.rays import (
     harmonic_embedding,
     plucker_rays,
@@ -16,7 +16,6 @@ __all__ = [
     "NVSConfig",
     "NVSModel",
     "harmonic_embedding",
-    "model_hash",
     "plucker_rays",
     "ray_embedding",
     "relative_spherical_pose",

@@ -19,33 +19,63 @@ from diamond_sss.diffusion.nvs.model import NVSConfig
 
 UNET_PREFIX = "model.diffusion_model."
 SKIPPED_PREFIXES = ("first_stage_model.", "cond_stage_model.", "model_ema.")
-SKIPPED_BUFFERS = ("betas", "alphas_cumprod", "alphas_cumprod_prev", "sqrt_alphas_cumprod",
-                   "sqrt_one_minus_alphas_cumprod", "log_one_minus_alphas_cumprod", "sqrt_recip_alphas_cumprod",
-                   "sqrt_recipm1_alphas_cumprod", "posterior_variance", "posterior_log_variance_clipped",
-                   "posterior_mean_coef1", "posterior_mean_coef2", "logvar", "scale_factor")
+SKIPPED_BUFFERS = (
+    "betas",
+    "alphas_cumprod",
+    "alphas_cumprod_prev",
+    "sqrt_alphas_cumprod",
+    "sqrt_one_minus_alphas_cumprod",
+    "log_one_minus_alphas_cumprod",
+    "sqrt_recip_alphas_cumprod",
+    "sqrt_recipm1_alphas_cumprod",
+    "posterior_variance",
+    "posterior_log_variance_clipped",
+    "posterior_mean_coef1",
+    "posterior_mean_coef2",
+    "logvar",
+    "scale_factor",
+)
 
-RESBLOCK_NAMES = {"in_layers.0": "norm1", "in_layers.2": "conv1", "emb_layers.1": "time_emb_proj",
-                  "out_layers.0": "norm2", "out_layers.3": "conv2", "skip_connection": "conv_shortcut",
-                  "pose_layers.0": "ray_proj"}
+RESBLOCK_NAMES = {
+    "in_layers.0": "norm1",
+    "in_layers.2": "conv1",
+    "emb_layers.1": "time_emb_proj",
+    "out_layers.0": "norm2",
+    "out_layers.3": "conv2",
+    "skip_connection": "conv_shortcut",
+    "pose_layers.0": "ray_proj",
+}
 TRANSFORMER_NAMES = {"attn3d": "attn_mv", "norm4": "norm_mv"}
-TOP_LEVEL_NAMES = {"time_embed.0": "time_embedding.linear_1", "time_embed.2": "time_embedding.linear_2",
-                   "input_blocks.0.0": "conv_in", "out.0": "conv_norm_out", "out.2": "conv_out"}
+TOP_LEVEL_NAMES = {
+    "time_embed.0": "time_embedding.linear_1",
+    "time_embed.2": "time_embedding.linear_2",
+    "input_blocks.0.0": "conv_in",
+    "out.0": "conv_norm_out",
+    "out.2": "conv_out",
+}
 
 
 def free3d_config(image_size: int = 256, vae_path: str | None = None) -> NVSConfig:
     """Architecture of the official Free3D UNet (Stable Diffusion 1.x layout, 8 input channels)."""
-    return NVSConfig(space="latent", image_size=image_size, vae_path=vae_path,
-                     block_out_channels=(320, 640, 1280, 1280),
-                     down_block_types=("CrossAttnDownBlock2D",) * 3 + ("DownBlock2D",),
-                     up_block_types=("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3,
-                     layers_per_block=2, attention_head_dim=8, norm_num_groups=32, cross_attention_dim=768,
-                     embed_dim=768)
+    return NVSConfig(
+        space="latent",
+        image_size=image_size,
+        vae_path=vae_path,
+        block_out_channels=(320, 640, 1280, 1280),
+        down_block_types=("CrossAttnDownBlock2D",) * 3 + ("DownBlock2D",),
+        up_block_types=("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3,
+        layers_per_block=2,
+        attention_head_dim=8,
+        norm_num_groups=32,
+        cross_attention_dim=768,
+        embed_dim=768,
+    )
 
 
 def _rename(rest: str, table: dict[str, str]) -> str:
     for old, new in table.items():
         if rest == old or rest.startswith(old + "."):
-            return new + rest[len(old):]
+            return new + rest[len(old) :]
     return rest
 
 
@@ -66,10 +96,10 @@ def _transformer(rest: str) -> str:
 
 
 def unet_key(key: str, config: NVSConfig) -> str:
-    """diffusers name (inside ``NVSModel.unet``) of an official UNet key without ``model.diffusion_model.``."""
+    """diffusers name (inside ``NVSModel.unet``) of an official UNet key (no ``model.diffusion_model.``)."""
     for old, new in TOP_LEVEL_NAMES.items():
         if key.startswith(old + "."):
-            return new + key[len(old):]
+            return new + key[len(old) :]
     n = config.layers_per_block
     down_attention = ["CrossAttn" in t for t in config.down_block_types]
     up_attention = ["CrossAttn" in t for t in config.up_block_types]
@@ -106,7 +136,9 @@ def unet_key(key: str, config: NVSConfig) -> str:
     raise KeyError(key)
 
 
-def convert_free3d_state_dict(official: dict[str, Tensor], config: NVSConfig) -> tuple[dict[str, Tensor], list[str]]:
+def convert_free3d_state_dict(
+    official: dict[str, Tensor], config: NVSConfig
+) -> tuple[dict[str, Tensor], list[str]]:
     """Rename an official Free3D state dict to :class:`NVSModel` keys.
 
     Returns ``(converted, skipped)``; ``skipped`` lists the VAE / CLIP / schedule keys left out. Raises
@@ -119,10 +151,10 @@ def convert_free3d_state_dict(official: dict[str, Tensor], config: NVSConfig) ->
         if key.startswith(SKIPPED_PREFIXES) or key in SKIPPED_BUFFERS:
             skipped.append(key)
         elif key.startswith("cc_projection."):
-            converted["context_projection." + key[len("cc_projection."):]] = value
+            converted["context_projection." + key[len("cc_projection.") :]] = value
         elif key.startswith(UNET_PREFIX):
             try:
-                converted["unet." + unet_key(key[len(UNET_PREFIX):], config)] = value
+                converted["unet." + unet_key(key[len(UNET_PREFIX) :], config)] = value
             except KeyError:
                 unknown.append(key)
         else:

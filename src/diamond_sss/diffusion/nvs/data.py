@@ -34,7 +34,9 @@ class Sequence:
 def load_rgba_views(dataset: OLATDataset, views: list[int], light: int, size: int) -> tuple[Tensor, Tensor]:
     """RGBA images ``[N,4,size,size]`` (premultiplied linear colour, alpha) and their scaled intrinsics."""
     if dataset.width != dataset.height:
-        raise ValueError(f"{dataset.root}: the novel-view model needs square images, got {dataset.width}x{dataset.height}")
+        raise ValueError(
+            f"{dataset.root}: the novel-view model needs square images, got {dataset.width}x{dataset.height}"
+        )
     rgb, mask = dataset.load_batch([dataset.observation_index(v, light) for v in views])
     rgba = torch.cat([rgb, mask], dim=-1).permute(0, 3, 1, 2).float()
     if rgba.shape[-1] != size:
@@ -53,14 +55,17 @@ def fixed_light_sequences(roots: list[str | Path], size: int, min_views: int = 2
             if len(views) < min_views:
                 continue
             images, K = load_rgba_views(dataset, views, light, size)
-            sequences.append(Sequence(Path(root).name, light, views, images, dataset.viewmats[views].float(), K))
+            sequences.append(
+                Sequence(Path(root).name, light, views, images, dataset.viewmats[views].float(), K)
+            )
     if not sequences:
         raise ValueError(f"no light with >= {min_views} views in {[str(r) for r in roots]}")
     return sequences
 
 
-def sample_batch(sequences: list[Sequence], num_objects: int, views_per_object: int,
-                 generator: torch.Generator) -> NVSBatch:
+def sample_batch(
+    sequences: list[Sequence], num_objects: int, views_per_object: int, generator: torch.Generator
+) -> NVSBatch:
     """``num_objects`` sequences (distinct objects first), a reference and ``views_per_object`` targets each.
 
     Targets are drawn among the sequence's other views, with repetition only when there are too few.
@@ -84,5 +89,10 @@ def sample_batch(sequences: list[Sequence], num_objects: int, views_per_object: 
         tgts.append(seq.images[pick])
         tgt_w2c.append(seq.w2c[pick])
         tgt_K.append(seq.K[pick])
-    return NVSBatch(reference=torch.stack(refs), reference_w2c=torch.stack(ref_w2c), target_w2c=torch.stack(tgt_w2c),
-                    target_K=torch.stack(tgt_K), targets=torch.stack(tgts))
+    return NVSBatch(
+        reference=torch.stack(refs),
+        reference_w2c=torch.stack(ref_w2c),
+        target_w2c=torch.stack(tgt_w2c),
+        target_K=torch.stack(tgt_K),
+        targets=torch.stack(tgts),
+    )

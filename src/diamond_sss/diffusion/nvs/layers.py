@@ -29,7 +29,7 @@ from diamond_sss.diffusion.nvs.rays import RAY_EMBEDDING_CHANNELS
 
 @dataclass
 class ConditioningSlot:
-    """Per-forward conditioning shared by the grafted layers: ``rays [B,78,h,w]`` (or None), views per object."""
+    """Per-forward conditioning of the grafted layers: ``rays [B,78,h,w]`` or None, views per object."""
 
     rays: Tensor | None = None
     num_views: int = 1
@@ -38,10 +38,18 @@ class ConditioningSlot:
 class RayConditionedResnetBlock(nn.Module):
     """``ResnetBlock2D`` with ray-conditioning normalisation (Free3D ``pose_layers``)."""
 
-    def __init__(self, block: ResnetBlock2D, slot: ConditioningSlot, ray_channels: int = RAY_EMBEDDING_CHANNELS):
+    def __init__(
+        self, block: ResnetBlock2D, slot: ConditioningSlot, ray_channels: int = RAY_EMBEDDING_CHANNELS
+    ):
         super().__init__()
-        if block.time_embedding_norm != "default" or block.upsample is not None or block.downsample is not None:
-            raise ValueError("ray conditioning supports plain ResnetBlock2D blocks (default norm, no up/down)")
+        if (
+            block.time_embedding_norm != "default"
+            or block.upsample is not None
+            or block.downsample is not None
+        ):
+            raise ValueError(
+                "ray conditioning supports plain ResnetBlock2D blocks (default norm, no up/down)"
+            )
         self.norm1, self.conv1, self.norm2, self.conv2 = block.norm1, block.conv1, block.norm2, block.conv2
         self.time_emb_proj, self.conv_shortcut = block.time_emb_proj, block.conv_shortcut
         self.dropout, self.nonlinearity = block.dropout, block.nonlinearity
@@ -87,7 +95,11 @@ def multi_view_attention(attention: Attention, norm: nn.LayerNorm, x: Tensor, nu
     seq = x.reshape(bv // num_views, num_views, tokens, channels).transpose(1, 2)
     seq = seq.reshape(-1, num_views, channels)
     out = attention(norm(seq))
-    out = out.reshape(bv // num_views, tokens, num_views, channels).transpose(1, 2).reshape(bv, tokens, channels)
+    out = (
+        out.reshape(bv // num_views, tokens, num_views, channels)
+        .transpose(1, 2)
+        .reshape(bv, tokens, channels)
+    )
     return x + out
 
 
@@ -97,7 +109,9 @@ class MultiViewTransformerBlock(nn.Module):
     def __init__(self, block: BasicTransformerBlock, slot: ConditioningSlot):
         super().__init__()
         if block.norm_type != "layer_norm" or block.attn2 is None or block.pos_embed is not None:
-            raise ValueError("multi-view attention supports layer-norm transformer blocks with cross-attention")
+            raise ValueError(
+                "multi-view attention supports layer-norm transformer blocks with cross-attention"
+            )
         self.norm1, self.attn1, self.norm2, self.attn2 = block.norm1, block.attn1, block.norm2, block.attn2
         self.norm3, self.ff = block.norm3, block.ff
         dim = block.norm1.normalized_shape[0]
@@ -109,11 +123,19 @@ class MultiViewTransformerBlock(nn.Module):
         self.slot = [slot]
         self.gradient_checkpointing = False
 
-    def forward(self, hidden_states: Tensor, attention_mask: Tensor | None = None,
-                encoder_hidden_states: Tensor | None = None, *args, **kwargs) -> Tensor:
+    def forward(
+        self,
+        hidden_states: Tensor,
+        attention_mask: Tensor | None = None,
+        encoder_hidden_states: Tensor | None = None,
+        *args,
+        **kwargs,
+    ) -> Tensor:
         num_views = self.slot[0].num_views
         if self.gradient_checkpointing and torch.is_grad_enabled():
-            return checkpoint(self._forward, hidden_states, encoder_hidden_states, num_views, use_reentrant=False)
+            return checkpoint(
+                self._forward, hidden_states, encoder_hidden_states, num_views, use_reentrant=False
+            )
         return self._forward(hidden_states, encoder_hidden_states, num_views)
 
     def _forward(self, x: Tensor, context: Tensor | None, num_views: int) -> Tensor:

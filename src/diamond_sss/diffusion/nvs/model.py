@@ -22,7 +22,7 @@ from torch import Tensor, nn
 from diamond_sss.data.conventions import scale_intrinsics
 from diamond_sss.diffusion.nvs.layers import ConditioningSlot, graft_free3d_layers, set_layer_checkpointing
 from diamond_sss.diffusion.nvs.rays import RELATIVE_POSE_CHANNELS, ray_embedding, relative_spherical_pose
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors, sha256_file
+from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
 
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"
@@ -106,17 +106,28 @@ class ReferenceEncoder(nn.Module):
 
 def make_train_scheduler(config: NVSConfig) -> DDPMScheduler:
     """DDPM noise schedule of ``config`` (training)."""
-    return DDPMScheduler(num_train_timesteps=config.num_train_timesteps, beta_start=config.beta_start,
-                         beta_end=config.beta_end, beta_schedule=config.beta_schedule,
-                         prediction_type=config.prediction_type, clip_sample=False)
+    return DDPMScheduler(
+        num_train_timesteps=config.num_train_timesteps,
+        beta_start=config.beta_start,
+        beta_end=config.beta_end,
+        beta_schedule=config.beta_schedule,
+        prediction_type=config.prediction_type,
+        clip_sample=False,
+    )
 
 
 def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
     """Deterministic DDIM sampler (``eta = 0``) on the same schedule."""
-    return DDIMScheduler(num_train_timesteps=config.num_train_timesteps, beta_start=config.beta_start,
-                         beta_end=config.beta_end, beta_schedule=config.beta_schedule,
-                         prediction_type=config.prediction_type, clip_sample=False, set_alpha_to_one=False,
-                         steps_offset=1)
+    return DDIMScheduler(
+        num_train_timesteps=config.num_train_timesteps,
+        beta_start=config.beta_start,
+        beta_end=config.beta_end,
+        beta_schedule=config.beta_schedule,
+        prediction_type=config.prediction_type,
+        clip_sample=False,
+        set_alpha_to_one=False,
+        steps_offset=1,
+    )
 
 
 @dataclass
@@ -144,7 +155,9 @@ class NVSBatch:
         if self.reference_w2c.shape != (b, 4, 4):
             raise ValueError(f"reference_w2c must be [B,4,4], got {tuple(self.reference_w2c.shape)}")
         if self.targets is not None and self.targets.shape[:2] != self.target_w2c.shape[:2]:
-            raise ValueError(f"targets {tuple(self.targets.shape)} do not match cameras {tuple(self.target_w2c.shape)}")
+            raise ValueError(
+                f"targets {tuple(self.targets.shape)} do not match cameras {tuple(self.target_w2c.shape)}"
+            )
 
 
 class NVSModel(nn.Module):
@@ -155,16 +168,23 @@ class NVSModel(nn.Module):
         self.config = config
         c = config.model_channels
         self.unet = UNet2DConditionModel(
-            sample_size=config.model_size, in_channels=2 * c, out_channels=c,
-            block_out_channels=config.block_out_channels, down_block_types=config.down_block_types,
-            up_block_types=config.up_block_types, layers_per_block=config.layers_per_block,
-            attention_head_dim=config.attention_head_dim, norm_num_groups=config.norm_num_groups,
+            sample_size=config.model_size,
+            in_channels=2 * c,
+            out_channels=c,
+            block_out_channels=config.block_out_channels,
+            down_block_types=config.down_block_types,
+            up_block_types=config.up_block_types,
+            layers_per_block=config.layers_per_block,
+            attention_head_dim=config.attention_head_dim,
+            norm_num_groups=config.norm_num_groups,
             cross_attention_dim=config.cross_attention_dim,
         )
         self.slot = ConditioningSlot()
         graft_free3d_layers(self.unet, self.slot)
         self.reference_encoder = ReferenceEncoder(c, config.encoder_channels, config.embed_dim)
-        self.context_projection = nn.Linear(config.embed_dim + RELATIVE_POSE_CHANNELS, config.cross_attention_dim)
+        self.context_projection = nn.Linear(
+            config.embed_dim + RELATIVE_POSE_CHANNELS, config.cross_attention_dim
+        )
         with torch.no_grad():  # Free3D: identity on the image embedding, zero on the pose at start
             self.context_projection.weight.zero_()
             n = min(config.embed_dim, config.cross_attention_dim)
@@ -173,7 +193,9 @@ class NVSModel(nn.Module):
         self.null_embedding = nn.Parameter(torch.zeros(config.embed_dim))
         if config.space == "latent" and vae is None:
             if config.vae_path is None:
-                raise ValueError("latent space needs a VAE: pass vae= or set config.vae_path to a local folder")
+                raise ValueError(
+                    "latent space needs a VAE: pass vae= or set config.vae_path to a local folder"
+                )
             vae = AutoencoderKL.from_pretrained(config.vae_path, local_files_only=True)
         self.vae = vae
         if vae is not None:
@@ -200,7 +222,7 @@ class NVSModel(nn.Module):
         return self.vae.encode(x).latent_dist.mode() * self.config.latent_scale
 
     def decode(self, x: Tensor) -> Tensor:
-        """Model space -> RGBA in ``[0, 1]`` ``[N,4,H,W]`` (alpha from a 3-channel VAE: coverage of colour)."""
+        """Model space -> RGBA in ``[0, 1]`` ``[N,4,H,W]`` (3-channel VAE: alpha = colour coverage)."""
         if self.config.space == "latent":
             x = self.vae.decode(x / self.config.latent_scale).sample
         rgba = ((x + 1) / 2).clamp(0, 1)
@@ -223,21 +245,36 @@ class NVSModel(nn.Module):
 
     def context(self, image_embedding: Tensor, pose: Tensor, drop_image: Tensor) -> Tensor:
         """Context token ``proj([embedding or null, pose])``, ``[N,1,D]``; ``drop_image [N]`` bool."""
-        emb = torch.where(drop_image[:, None], self.null_embedding.expand_as(image_embedding), image_embedding)
+        emb = torch.where(
+            drop_image[:, None], self.null_embedding.expand_as(image_embedding), image_embedding
+        )
         return self.context_projection(torch.cat([emb, pose], dim=-1))[:, None]
 
-    def denoise(self, noisy: Tensor, timesteps: Tensor, reference: Tensor, context: Tensor, rays: Tensor,
-                num_views: int) -> Tensor:
+    def denoise(
+        self,
+        noisy: Tensor,
+        timesteps: Tensor,
+        reference: Tensor,
+        context: Tensor,
+        rays: Tensor,
+        num_views: int,
+    ) -> Tensor:
         """UNet prediction for ``noisy [B*V,C,h,w]`` (views of an object contiguous)."""
         self.slot.rays, self.slot.num_views = rays, num_views
         try:
-            return self.unet(torch.cat([noisy, reference], dim=1), timesteps, encoder_hidden_states=context).sample
+            return self.unet(
+                torch.cat([noisy, reference], dim=1), timesteps, encoder_hidden_states=context
+            ).sample
         finally:
             self.slot.rays, self.slot.num_views = None, 1
 
     # --------------------------------------------------------------- training
-    def training_loss(self, batch: NVSBatch, generator: torch.Generator | None = None,
-                      scheduler: DDPMScheduler | None = None) -> Tensor:
+    def training_loss(
+        self,
+        batch: NVSBatch,
+        generator: torch.Generator | None = None,
+        scheduler: DDPMScheduler | None = None,
+    ) -> Tensor:
         """Free3D objective: MSE of the predicted noise, one timestep per object, condition dropout.
 
         Dropout (probability ``p``): image embedding dropped when ``u < 2p``, reference image and rays
@@ -274,8 +311,13 @@ class NVSModel(nn.Module):
 
     # --------------------------------------------------------------- sampling
     @torch.no_grad()
-    def sample(self, batch: NVSBatch, num_steps: int = 50, guidance_scale: float = 3.0,
-               generator: torch.Generator | None = None) -> Tensor:
+    def sample(
+        self,
+        batch: NVSBatch,
+        num_steps: int = 50,
+        guidance_scale: float = 3.0,
+        generator: torch.Generator | None = None,
+    ) -> Tensor:
         """Generate the target views, ``[B,V,4,H,W]`` RGBA in ``[0, 1]`` at the model's image size.
 
         One initial noise per object, shared by its views; DDIM (``eta = 0``) with classifier-free guidance
@@ -318,7 +360,9 @@ class NVSModel(nn.Module):
     def save(self, folder: str | Path) -> Path:
         """Write ``config.json`` and ``model.safetensors`` (without the VAE) atomically into ``folder``."""
         folder = Path(folder)
-        tensors = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items() if not k.startswith("vae.")}
+        tensors = {
+            k: v.detach().cpu().contiguous() for k, v in self.state_dict().items() if not k.startswith("vae.")
+        }
         atomic_save_safetensors(folder / WEIGHTS_NAME, tensors)
         atomic_write_json(folder / CONFIG_NAME, asdict(self.config))
         return folder
@@ -336,18 +380,19 @@ class NVSModel(nn.Module):
         missing, unexpected = model.load_state_dict(state, strict=False)
         missing = [k for k in missing if not k.startswith("vae.")]
         if missing or unexpected:
-            raise ValueError(f"{folder / WEIGHTS_NAME}: missing keys {missing[:5]}, unexpected {unexpected[:5]}")
+            raise ValueError(
+                f"{folder / WEIGHTS_NAME}: missing keys {missing[:5]}, unexpected {unexpected[:5]}"
+            )
         return model.eval()
 
 
-def model_hash(folder: str | Path) -> str:
-    """Content key of a saved model: hash of its weights and config."""
-    folder = Path(folder)
-    return sha256_file(folder / WEIGHTS_NAME)[:16] + sha256_file(folder / CONFIG_NAME)[:16]
-
-
-def shared_noise(num_objects: int, num_views: int, shape: tuple[int, ...], generator: torch.Generator | None = None,
-                 device: torch.device | str | None = None) -> Tensor:
+def shared_noise(
+    num_objects: int,
+    num_views: int,
+    shape: tuple[int, ...],
+    generator: torch.Generator | None = None,
+    device: torch.device | str | None = None,
+) -> Tensor:
     """One Gaussian noise sample per object, repeated over its views: ``[B,V,*shape]``."""
     noise = torch.randn((num_objects, 1, *shape), generator=generator, device=device)
     return noise.expand(num_objects, num_views, *shape).contiguous()

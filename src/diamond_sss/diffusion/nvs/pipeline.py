@@ -21,9 +21,9 @@ from torch import Tensor
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.conventions import intrinsics_from_fov, opengl_c2w_to_opencv_w2c
 from diamond_sss.data.images import to_srgb8, write_png
-from diamond_sss.diffusion.common.cache import OutputCache
+from diamond_sss.diffusion.common import OutputCache, files_hash
 from diamond_sss.diffusion.nvs.data import load_rgba_views
-from diamond_sss.diffusion.nvs.model import NVSBatch, NVSModel, model_hash
+from diamond_sss.diffusion.nvs.model import CONFIG_NAME, NVSBatch, NVSModel
 from diamond_sss.utils.io import atomic_write_json, sha256_file
 
 MANIFEST = "manifest.json"
@@ -56,7 +56,9 @@ def _matrix(value, shape: tuple[int, int], where: str) -> Tensor:
     except (TypeError, ValueError) as err:
         raise ValueError(f"{where}: expected a {shape[0]}x{shape[1]} matrix of numbers ({err})") from None
     if matrix.shape != shape or not torch.isfinite(matrix).all():
-        raise ValueError(f"{where}: expected a finite {shape[0]}x{shape[1]} matrix, got shape {tuple(matrix.shape)}")
+        raise ValueError(
+            f"{where}: expected a finite {shape[0]}x{shape[1]} matrix, got shape {tuple(matrix.shape)}"
+        )
     return matrix
 
 
@@ -77,15 +79,23 @@ def parse_targets(targets: str, dataset: OLATDataset) -> TargetCameras:
         try:
             views = [int(part) for part in text.replace(" ", "").split(",") if part]
         except ValueError:
-            raise ValueError(f"--targets must be view indices like '3,7,12' or a JSON file of poses, "
-                             f"got {targets!r}") from None
+            raise ValueError(
+                f"--targets must be view indices like '3,7,12' or a JSON file of poses, got {targets!r}"
+            ) from None
     if not views:
         raise ValueError("--targets lists no view")
     bad = [v for v in views if not 0 <= v < dataset.num_views]
     if bad:
-        raise ValueError(f"unknown view index {bad} (the {dataset.split} split has views 0..{dataset.num_views - 1})")
-    return TargetCameras(dataset.viewmats[views].double(), dataset.intrinsics[views].double(), views,
-                         [f"view_{v:03d}" for v in views], size)
+        raise ValueError(
+            f"unknown view index {bad} (the {dataset.split} split has views 0..{dataset.num_views - 1})"
+        )
+    return TargetCameras(
+        dataset.viewmats[views].double(),
+        dataset.intrinsics[views].double(),
+        views,
+        [f"view_{v:03d}" for v in views],
+        size,
+    )
 
 
 def _is_index_list(text: str) -> bool:
@@ -112,7 +122,7 @@ def _targets_from_json(text: str, dataset: OLATDataset) -> TargetCameras:
     fov = None
     if isinstance(data, dict):
         if not isinstance(data.get("frames"), list):
-            raise ValueError(f"pose JSON {source}: an object needs a 'frames' list")
+            raise ValueError(f"pose JSON {source}: an object needs a 'frames' list")  # noqa: TRY004 (bad data)
         fov = data.get("camera_angle_x")
         try:
             matrices = [frame["transform_matrix"] for frame in data["frames"]]
@@ -121,7 +131,7 @@ def _targets_from_json(text: str, dataset: OLATDataset) -> TargetCameras:
     elif isinstance(data, list):
         matrices = data
     else:
-        raise ValueError(f"pose JSON {source}: expected a list of 4x4 matrices or an object with 'frames'")
+        raise ValueError(f"pose JSON {source}: expected a list of 4x4 matrices or an object with 'frames'")  # noqa: TRY004
     if not matrices:
         raise ValueError(f"pose JSON {source} holds no camera")
     c2w = torch.stack([_matrix(m, (4, 4), f"pose JSON {source}, camera {i}") for i, m in enumerate(matrices)])
@@ -135,29 +145,56 @@ def _targets_from_json(text: str, dataset: OLATDataset) -> TargetCameras:
     return TargetCameras(w2c, K.clone(), list(range(n)), [f"pose_{i:03d}" for i in range(n)], size)
 
 
-def generate_novel_views(data: str | Path, out: str | Path, view: int, light: int, targets: str, split: str = "train",
-                         model_dir: str | Path | None = None, steps: int = 50, guidance_scale: float = 3.0,
-                         seed: int = 0, cache_dir: str | Path | None = None, device: str = "cpu") -> Path:
-    """Generate the ``targets`` of ``data`` seen under ``light`` from the reference ``view``; returns the manifest.
+def generate_novel_views(
+    data: str | Path,
+    out: str | Path,
+    view: int,
+    light: int,
+    targets: str,
+    split: str = "train",
+    model_dir: str | Path | None = None,
+    steps: int = 50,
+    guidance_scale: float = 3.0,
+    seed: int = 0,
+    cache_dir: str | Path | None = None,
+    device: str = "cpu",
+) -> Path:
+    """Generate the ``targets`` of ``data`` under ``light`` from reference ``view``; returns the manifest.
 
     Deterministic for a seed; a second call with the same model and inputs is served from the cache.
     """
     dataset = OLATDataset(data, split)
     if not 0 <= view < dataset.num_views:
-        raise ValueError(f"unknown view index {view} (the {split} split has views 0..{dataset.num_views - 1})")
+        raise ValueError(
+            f"unknown view index {view} (the {split} split has views 0..{dataset.num_views - 1})"
+        )
     if not 0 <= light < dataset.num_lights:
-        raise ValueError(f"unknown light index {light} (the {split} split has lights 0..{dataset.num_lights - 1})")
+        raise ValueError(
+            f"unknown light index {light} (the {split} split has lights 0..{dataset.num_lights - 1})"
+        )
     if not bool(dataset.presence[view, light]):
         raise ValueError(f"view {view} was not captured under light {light} in {dataset.json_path}")
     cameras = parse_targets(targets, dataset)
     model_dir = Path(model_dir) if model_dir is not None else default_model_dir()
+    if not (model_dir / CONFIG_NAME).is_file():
+        raise FileNotFoundError(
+            f"no novel-view model in {model_dir} (expected {CONFIG_NAME} and model.safetensors)"
+        )
     image_path = dataset.observations[dataset.observation_index(view, light)].image_path
-    key = OutputCache.key({
-        "model": model_hash(model_dir), "reference": sha256_file(image_path),
-        "reference_w2c": dataset.viewmats[view].tolist(), "reference_K": dataset.intrinsics[view].tolist(),
-        "targets_w2c": cameras.w2c.tolist(), "targets_K": cameras.K.tolist(), "names": cameras.names,
-        "steps": steps, "guidance_scale": guidance_scale, "seed": seed,
-    })
+    key = OutputCache.key(
+        {
+            "model": files_hash(model_dir),
+            "reference": sha256_file(image_path),
+            "reference_w2c": dataset.viewmats[view].tolist(),
+            "reference_K": dataset.intrinsics[view].tolist(),
+            "targets_w2c": cameras.w2c.tolist(),
+            "targets_K": cameras.K.tolist(),
+            "names": cameras.names,
+            "steps": steps,
+            "guidance_scale": guidance_scale,
+            "seed": seed,
+        }
+    )
     cache = OutputCache(cache_dir if cache_dir is not None else default_cache_dir())
 
     def write(folder: Path) -> None:
@@ -167,12 +204,17 @@ def generate_novel_views(data: str | Path, out: str | Path, view: int, light: in
         scale = size / cameras.size
         K = cameras.K.clone()
         K[:, :2] *= scale
-        batch = NVSBatch(reference=reference.to(device), reference_w2c=dataset.viewmats[view][None].float().to(device),
-                         target_w2c=cameras.w2c[None].float().to(device), target_K=K[None].float().to(device))
+        batch = NVSBatch(
+            reference=reference.to(device),
+            reference_w2c=dataset.viewmats[view][None].float().to(device),
+            target_w2c=cameras.w2c[None].float().to(device),
+            target_K=K[None].float().to(device),
+        )
         generator = torch.Generator(device=device).manual_seed(seed)
         rgba = model.sample(batch, num_steps=steps, guidance_scale=guidance_scale, generator=generator)[0]
-        rgba = F.interpolate(rgba.float().cpu(), size=(cameras.size, cameras.size), mode="bilinear",
-                             align_corners=False).clamp(0, 1)
+        rgba = F.interpolate(
+            rgba.float().cpu(), size=(cameras.size, cameras.size), mode="bilinear", align_corners=False
+        ).clamp(0, 1)
         for name, image in zip(cameras.names, rgba):
             rgb, alpha = image[:3].permute(1, 2, 0), image[3:].permute(1, 2, 0)
             write_png(folder / f"{name}.png", to_srgb8(rgb, alpha))
@@ -186,5 +228,7 @@ def generate_novel_views(data: str | Path, out: str | Path, view: int, light: in
         for suffix in (".png", "_mask.png"):
             shutil.copyfile(entry / f"{name}{suffix}", out / f".{name}{suffix}.tmp")
             os.replace(out / f".{name}{suffix}.tmp", out / f"{name}{suffix}")
-        manifest.append({"view": target_view, "light": light, "image": f"{name}.png", "mask": f"{name}_mask.png"})
+        manifest.append(
+            {"view": target_view, "light": light, "image": f"{name}.png", "mask": f"{name}_mask.png"}
+        )
     return atomic_write_json(out / MANIFEST, manifest)

@@ -87,8 +87,10 @@ def spherical_coordinates(w2c: Tensor, center: Tensor | None = None) -> Tensor:
     return torch.stack([polar, azimuth, radius], dim=-1)
 
 
-def relative_spherical_pose(target_w2c: Tensor, reference_w2c: Tensor, center: Tensor | None = None) -> Tensor:
-    """Zero123 / Free3D global pose token ``(d polar, sin d azimuth, cos d azimuth, d radius)``. ``[...,4]``."""
+def relative_spherical_pose(
+    target_w2c: Tensor, reference_w2c: Tensor, center: Tensor | None = None
+) -> Tensor:
+    """Zero123 / Free3D global pose token ``(d polar, sin d azim, cos d azim, d radius)``, ``[...,4]``."""
     t = spherical_coordinates(target_w2c, center)
     r = spherical_coordinates(reference_w2c, center)
     d = t - r

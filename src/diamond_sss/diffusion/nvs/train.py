@@ -8,7 +8,6 @@ linear warm-up steps, gradient checkpointing. Sampling of the training stream is
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -16,14 +15,13 @@ from pathlib import Path
 import torch
 from accelerate import Accelerator
 from diffusers.optimization import get_constant_schedule_with_warmup
-from diffusers.training_utils import EMAModel
 
+from diamond_sss.diffusion.common import EMA, latest_checkpoint, load_checkpoint, save_checkpoint
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel, make_train_scheduler
 from diamond_sss.utils.io import atomic_write_json
 
 CHECKPOINTS = "checkpoints"
-STATE_NAME = "trainer.json"
 
 
 @dataclass
@@ -45,30 +43,13 @@ class FinetuneConfig:
     model: NVSConfig = field(default_factory=NVSConfig)
 
 
-def _checkpoints(out: Path) -> list[Path]:
-    folder = out / CHECKPOINTS
-    if not folder.is_dir():
-        return []
-    return sorted(p for p in folder.iterdir() if p.is_dir() and p.name.startswith("step_"))
-
-
-def _save_checkpoint(accelerator: Accelerator, ema: EMAModel, out: Path, step: int, keep: int) -> Path:
-    """Accelerate state + EMA + step, written to a temporary folder then renamed (atomic)."""
-    final = out / CHECKPOINTS / f"step_{step:07d}"
-    tmp = final.with_name(final.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    accelerator.save_state(str(tmp))
-    torch.save(ema.state_dict(), tmp / "ema.pt")
-    atomic_write_json(tmp / STATE_NAME, {"step": step})
-    shutil.rmtree(final, ignore_errors=True)
-    tmp.rename(final)
-    for old in _checkpoints(out)[:-keep]:
-        shutil.rmtree(old, ignore_errors=True)
-    return final
-
-
-def finetune(data: list[str | Path], out: str | Path, config: FinetuneConfig | None = None, resume: bool = True,
-             log=print) -> Path:
+def finetune(
+    data: list[str | Path],
+    out: str | Path,
+    config: FinetuneConfig | None = None,
+    resume: bool = True,
+    log=print,
+) -> Path:
     """Fine-tune on the fixed-illumination sequences of ``data``; write ``out/model`` (EMA weights).
 
     Returns the model folder. ``out/train_log.jsonl`` records loss, learning rate and seconds per step.
@@ -82,23 +63,22 @@ def finetune(data: list[str | Path], out: str | Path, config: FinetuneConfig | N
     if config.gradient_checkpointing:
         model.enable_gradient_checkpointing()
     sequences = fixed_light_sequences(list(data), config.model.image_size)
-    optimizer = torch.optim.AdamW(model.trainable_parameters(), lr=config.learning_rate,
-                                  weight_decay=config.weight_decay)
+    optimizer = torch.optim.AdamW(
+        model.trainable_parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
+    )
     lr_schedule = get_constant_schedule_with_warmup(optimizer, num_warmup_steps=config.warmup_steps)
     model, optimizer, lr_schedule = accelerator.prepare(model, optimizer, lr_schedule)
     raw = accelerator.unwrap_model(model)
-    ema = EMAModel(raw.trainable_parameters(), decay=config.ema_decay)
+    ema = EMA(raw, decay=config.ema_decay)
+    accelerator.register_for_checkpointing(ema)
     noise_schedule = make_train_scheduler(config.model)
     atomic_write_json(out / "finetune_config.json", asdict(config))
 
     step = 0
-    existing = _checkpoints(out)
-    if resume and existing:
-        accelerator.load_state(str(existing[-1]))
-        ema.load_state_dict(torch.load(existing[-1] / "ema.pt", weights_only=False))
-        step = json.loads((existing[-1] / STATE_NAME).read_text())["step"]
-        log(f"resumed from {existing[-1]} at step {step}")
-    ema.to(accelerator.device)
+    latest = latest_checkpoint(out / CHECKPOINTS) if resume else None
+    if latest is not None:
+        step = load_checkpoint(accelerator, latest)["step"]
+        log(f"resumed from {latest} at step {step}")
 
     log_path = out / "train_log.jsonl"
     model.train()
@@ -107,28 +87,32 @@ def finetune(data: list[str | Path], out: str | Path, config: FinetuneConfig | N
         generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
         batch = sample_batch(sequences, config.objects_per_batch, config.views_per_object, generator)
         batch = _to_device(batch, accelerator.device)
-        loss = raw.training_loss(batch, generator=_device_generator(accelerator.device, config.seed, step),
-                                 scheduler=noise_schedule)
+        loss = raw.training_loss(
+            batch,
+            generator=_device_generator(accelerator.device, config.seed, step),
+            scheduler=noise_schedule,
+        )
         accelerator.backward(loss)
         optimizer.step()
         lr_schedule.step()
         optimizer.zero_grad(set_to_none=True)
-        ema.step(raw.trainable_parameters())
+        ema.update(raw)
         step += 1
         if step % config.log_every == 0 or step == config.steps:
-            record = {"step": step, "loss": loss.item(), "lr": lr_schedule.get_last_lr()[0],
-                      "seconds": time.perf_counter() - start}
+            record = {
+                "step": step,
+                "loss": loss.item(),
+                "lr": lr_schedule.get_last_lr()[0],
+                "seconds": time.perf_counter() - start,
+            }
             with open(log_path, "a") as f:
                 f.write(json.dumps(record) + "\n")
             log(f"step {step}/{config.steps} loss {record['loss']:.4f}")
         if step % config.checkpoint_every == 0 or step == config.steps:
-            _save_checkpoint(accelerator, ema, out, step, config.keep_checkpoints)
+            save_checkpoint(accelerator, out / CHECKPOINTS, step, keep=config.keep_checkpoints)
 
-    ema.store(raw.trainable_parameters())
-    ema.copy_to(raw.trainable_parameters())
-    folder = raw.save(out / "model")
-    ema.restore(raw.trainable_parameters())
-    return folder
+    with ema.averaged(raw):
+        return raw.save(out / "model")
 
 
 def _device_generator(device: torch.device, seed: int, step: int) -> torch.Generator:

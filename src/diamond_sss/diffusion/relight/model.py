@@ -92,8 +92,9 @@ class RelightDiffusion(nn.Module):
                            seed: int = 0) -> RelightDiffusion:
         """Latent-space model on a local Stable Diffusion folder (``unet/`` and ``vae/`` in diffusers format).
 
-        The UNet keeps its weights and gains the light projection in its timestep embedding (new, random);
-        the ControlNet copies the UNet's encoder. Never downloads: ``path`` must exist.
+        The UNet keeps its weights and gains the light projection in its timestep embedding (new, output layer
+        zero-initialised so the pretrained denoiser is unchanged at the start); the ControlNet copies the
+        UNet's encoder. Never downloads: ``path`` must exist.
         """
         path = Path(path)
         for part in ("unet", "vae"):
@@ -110,6 +111,11 @@ class RelightDiffusion(nn.Module):
                 path, subfolder="unet", local_files_only=True, low_cpu_mem_usage=False,
                 class_embed_type="projection", projection_class_embeddings_input_dim=config.light_input_dim,
             )
+            for layer in unet.class_embedding.modules():
+                if isinstance(layer, nn.Linear):
+                    layer.reset_parameters()
+            nn.init.zeros_(unet.class_embedding.linear_2.weight)
+            nn.init.zeros_(unet.class_embedding.linear_2.bias)
             config = RelightModelConfig.from_dict({**config.to_dict(),
                                                    "cross_attention_dim": unet.config.cross_attention_dim})
             embedding = tuple(16 * 2**i for i in range(factor.bit_length()))
@@ -124,9 +130,9 @@ class RelightDiffusion(nn.Module):
         atomic_save_safetensors(folder / WEIGHTS_NAME, state)
         atomic_write_json(folder / CONFIG_NAME, {
             "relight": self.config.to_dict(),
-            "unet": dict(self.unet.config),
-            "controlnet": dict(self.controlnet.config),
-            "vae": dict(self.vae.config) if self.vae is not None else None,
+            "unet": _public(self.unet.config),
+            "controlnet": _public(self.controlnet.config),
+            "vae": _public(self.vae.config) if self.vae is not None else None,
         })
         return folder
 
@@ -204,10 +210,19 @@ class RelightDiffusion(nn.Module):
 
     @torch.no_grad()
     def relight(self, conditioning: Tensor, target_code: Tensor, source_code: Tensor | None = None,
-                num_steps: int = 20, generator: torch.Generator | None = None) -> Tensor:
-        """DDIM (eta 0) sample of the relit image in model space ``[B,3,R,R]`` (noise drawn from ``generator``)."""
+                num_steps: int = 20, generator: torch.Generator | None = None, noise: Tensor | None = None) -> Tensor:
+        """DDIM (eta 0) sample of the relit image in model space ``[B,3,R,R]``.
+
+        The initial noise is ``noise`` (shape :meth:`sample_shape`) or drawn from ``generator``.
+        """
         scheduler = make_ddim_scheduler(self.config.scheduler)
         device = conditioning.device
         sample = ddim_sample(lambda x, t: self(x, t, conditioning, target_code, source_code),
-                             self.sample_shape(conditioning.shape[0]), scheduler, num_steps, generator, device)
+                             self.sample_shape(conditioning.shape[0]), scheduler, num_steps, generator, device,
+                             noise=noise)
         return self.decode(sample).clamp(-1.0, 1.0)
+
+
+def _public(config: dict) -> dict:
+    """A diffusers config without its private keys (``_name_or_path`` etc.), JSON-serialisable."""
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dict(config).items() if not k.startswith("_")}

@@ -1,0 +1,165 @@
+"""Relighting diffusion model: SH light code, shapes, v-prediction algebra, saving/loading, bad inputs."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from diamond_sss.data.conventions import look_at_opengl_c2w, opengl_c2w_to_opencv_w2c
+from diamond_sss.diffusion.common.sampling import SchedulerConfig, make_ddpm_scheduler
+from diamond_sss.diffusion.common.targets import predicted_clean, v_target
+from diamond_sss.diffusion.relight.config import RelightModelConfig
+from diamond_sss.diffusion.relight.conditioning import conditioning_image, image_to_model, model_to_image
+from diamond_sss.diffusion.relight.light import light_code
+from diamond_sss.diffusion.relight.model import RelightDiffusion
+
+
+def tiny_config(**overrides) -> RelightModelConfig:
+    base = dict(resolution=16, block_out_channels=(8, 16), norm_num_groups=4, cross_attention_dim=8,
+                attention_head_dim=4, light_tokens=2)
+    return RelightModelConfig(**{**base, **overrides})
+
+
+def tiny_model(seed: int = 0, **overrides) -> RelightDiffusion:
+    return RelightDiffusion.from_config(tiny_config(**overrides), seed=seed)
+
+
+def random_inputs(batch: int = 2, size: int = 16, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randn(batch, 3, size, size, generator=g), torch.randint(0, 1000, (batch,), generator=g),
+            torch.rand(batch, 8, size, size, generator=g) * 2 - 1, torch.randn(batch, 10, generator=g))
+
+
+def camera_w2c(eye):
+    return opengl_c2w_to_opencv_w2c(look_at_opengl_c2w(torch.tensor(eye), torch.zeros(3)))
+
+
+def test_light_code_closed_form():
+    c0, c1 = 0.5 * math.sqrt(1 / math.pi), math.sqrt(3 / (4 * math.pi))
+    w2c = camera_w2c([0.0, 0.0, 4.0])  # camera on +z looking at the origin: OpenCV z = world -z
+    towards_camera = light_code(torch.tensor([0.0, 0.0, 5.0]), w2c, torch.zeros(3), 2.0)
+    # Direction in the camera frame: (0, 0, -1). Y = [c0, -c1 y, c1 z, -c1 x, ...], distance 5 / 2.
+    c2_20 = 0.25 * math.sqrt(5 / math.pi) * 2.0  # Y_2^0 = 0.3154 (2 z^2 - x^2 - y^2) at z = -1
+    expected = torch.tensor([c0, 0.0, -c1, 0.0, 0.0, 0.0, c2_20, 0.0, 0.0, 2.5])
+    assert torch.allclose(towards_camera, expected, atol=1e-5)
+    right = light_code(torch.tensor([3.0, 0.0, 0.0]), w2c, torch.zeros(3), 1.0)
+    # World +x is the camera's right (OpenCV +x): Y_1^1 = -c1 x, Y_2^2 = 0.5463 (x^2 - y^2).
+    assert right[3] == pytest.approx(-c1, abs=1e-5) and right[8] == pytest.approx(0.5462742, abs=1e-5)
+    assert right[9] == pytest.approx(3.0)
+    # Orthonormality of the 9 bases: a quadrature over many directions gives the identity.
+    dirs = torch.nn.functional.normalize(torch.randn(200_000, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    codes = light_code(dirs * 3.0, torch.eye(4).expand(len(dirs), 4, 4), torch.zeros(3), 1.0)[:, :9]
+    gram = codes.T @ codes * (4 * math.pi / len(dirs))
+    assert torch.allclose(gram, torch.eye(9), atol=0.03)
+
+
+def test_light_code_rejects_bad_input():
+    with pytest.raises(ValueError, match="light_positions"):
+        light_code(torch.zeros(2), torch.eye(4), torch.zeros(3), 1.0)
+    with pytest.raises(ValueError, match="centre"):
+        light_code(torch.zeros(3), torch.eye(4), torch.zeros(3), 1.0)
+
+
+def test_v_prediction_round_trip():
+    alphas = make_ddpm_scheduler(SchedulerConfig()).alphas_cumprod
+    g = torch.Generator().manual_seed(1)
+    clean, noise = torch.randn(4, 3, 8, 8, generator=g), torch.randn(4, 3, 8, 8, generator=g)
+    t = torch.tensor([0, 10, 500, 999])
+    a = alphas[t].sqrt().reshape(-1, 1, 1, 1)
+    s = (1 - alphas[t]).sqrt().reshape(-1, 1, 1, 1)
+    noisy = a * clean + s * noise
+    v = v_target(clean, noise, alphas, t)
+    assert torch.allclose(predicted_clean(noisy, v, alphas, t), clean, atol=1e-5)
+    # The training scheduler adds noise the same way.
+    assert torch.allclose(make_ddpm_scheduler(SchedulerConfig()).add_noise(clean, noise, t), noisy, atol=1e-6)
+
+
+def test_image_space_round_trip():
+    linear = torch.rand(2, 5, 6, 3)
+    assert torch.allclose(model_to_image(image_to_model(linear)), linear, atol=1e-5)
+
+
+def test_forward_and_sampling_shapes_are_seeded():
+    model = tiny_model().eval()
+    x, t, cond, code = random_inputs()
+    assert model(x, t, cond, code).shape == x.shape
+    first = model.relight(cond, code, num_steps=3, generator=torch.Generator().manual_seed(7))
+    again = model.relight(cond, code, num_steps=3, generator=torch.Generator().manual_seed(7))
+    assert first.shape == (2, 3, 16, 16) and torch.equal(first, again)
+    assert float(first.abs().max()) <= 1.0
+    assert torch.equal(tiny_model(seed=0).unet.conv_in.weight, model.unet.conv_in.weight)
+    assert not torch.equal(tiny_model(seed=1).unet.conv_in.weight, model.unet.conv_in.weight)
+
+
+def test_light_code_reaches_the_output():
+    model = tiny_model().eval()
+    torch.nn.init.normal_(model.unet.conv_out.weight, std=0.1)
+    x, t, cond, code = random_inputs()
+    with torch.no_grad():
+        assert not torch.allclose(model(x, t, cond, code), model(x, t, cond, code + 1.0))
+
+
+def test_source_light_option():
+    model = tiny_model(use_source_light=True).eval()
+    x, t, cond, code = random_inputs()
+    assert model(x, t, cond, code, code).shape == x.shape
+    with pytest.raises(ValueError, match="source light"):
+        model(x, t, cond, code)
+
+
+def test_bad_inputs_have_clear_errors(tmp_path):
+    model = tiny_model()
+    x, t, cond, code = random_inputs()
+    with pytest.raises(ValueError, match="conditioning must be \\[B, 8"):
+        model(x, t, cond[:, :5], code)
+    with pytest.raises(ValueError, match="target_code must be"):
+        model(x, t, cond, code[:, :9])
+    with pytest.raises(FileNotFoundError, match="has no config.json"):
+        RelightDiffusion.load(tmp_path / "missing")
+    with pytest.raises(FileNotFoundError, match="not a diffusers Stable Diffusion folder"):
+        RelightDiffusion.from_pretrained_sd(tmp_path)
+    with pytest.raises(ValueError, match="must have shape \\[B,H,W,3\\]"):
+        conditioning_image(torch.zeros(1, 8, 8, 4), torch.zeros(1, 8, 8, 1), torch.zeros(1, 8, 8, 3),
+                           torch.zeros(1, 8, 8, 1), 8)
+    with pytest.raises(ValueError, match="resolution"):
+        tiny_config(resolution=15)
+
+
+def test_save_load_round_trip(tmp_path):
+    model = tiny_model().eval()
+    model.save(tmp_path / "m")
+    loaded = RelightDiffusion.load(tmp_path / "m")
+    x, t, cond, code = random_inputs()
+    with torch.no_grad():
+        assert torch.equal(model(x, t, cond, code), loaded(x, t, cond, code))
+    assert loaded.weights_hash() == model.weights_hash()
+    assert tiny_model(seed=3).weights_hash() != model.weights_hash()
+
+
+def test_from_local_stable_diffusion_folder(tmp_path):
+    from diffusers import AutoencoderKL, UNet2DConditionModel
+
+    torch.manual_seed(0)
+    UNet2DConditionModel(sample_size=8, in_channels=4, out_channels=4, block_out_channels=(8, 16),
+                         down_block_types=("DownBlock2D", "CrossAttnDownBlock2D"),
+                         up_block_types=("CrossAttnUpBlock2D", "UpBlock2D"), layers_per_block=1,
+                         cross_attention_dim=12, norm_num_groups=4, attention_head_dim=4
+                         ).save_pretrained(tmp_path / "sd" / "unet")
+    AutoencoderKL(in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(8, 8),
+                  down_block_types=("DownEncoderBlock2D",) * 2, up_block_types=("UpDecoderBlock2D",) * 2,
+                  norm_num_groups=4, layers_per_block=1).save_pretrained(tmp_path / "sd" / "vae")
+    sd_unet = UNet2DConditionModel.from_pretrained(tmp_path / "sd" / "unet")
+    model = RelightDiffusion.from_pretrained_sd(tmp_path / "sd", tiny_config(resolution=16)).eval()
+    assert model.config.space == "latent" and model.config.cross_attention_dim == 12
+    assert torch.equal(model.unet.conv_in.weight, sd_unet.conv_in.weight)  # pretrained weights kept
+    latent = model.encode(torch.zeros(1, 3, 16, 16))
+    assert latent.shape == (1, 4, 8, 8) and model.sample_shape(1) == (1, 4, 8, 8)
+    _, _, cond, code = random_inputs(batch=1)
+    out = model.relight(cond, code, num_steps=2, generator=torch.Generator().manual_seed(0))
+    assert out.shape == (1, 3, 16, 16) and bool(torch.isfinite(out).all())
+    model.save(tmp_path / "latent")
+    with torch.no_grad():
+        t = torch.tensor([5])
+        assert torch.equal(RelightDiffusion.load(tmp_path / "latent")(latent, t, cond, code), model(latent, t, cond, code))
