@@ -13,9 +13,17 @@ from diamond_sss.data.analytic import make_capture
 from diamond_sss.diffusion.nvs import pipeline
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 
-TINY = {"image_size": 16, "block_out_channels": (16, 32), "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D"),
-        "up_block_types": ("CrossAttnUpBlock2D", "UpBlock2D"), "attention_head_dim": 8, "norm_num_groups": 8,
-        "cross_attention_dim": 32, "embed_dim": 16, "encoder_channels": (8,)}
+TINY = {
+    "image_size": 16,
+    "block_out_channels": (16, 32),
+    "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D"),
+    "up_block_types": ("CrossAttnUpBlock2D", "UpBlock2D"),
+    "attention_head_dim": 8,
+    "norm_num_groups": 8,
+    "cross_attention_dim": 32,
+    "embed_dim": 16,
+    "encoder_channels": (8,),
+}
 
 
 @pytest.fixture(autouse=True)
@@ -37,15 +45,26 @@ def setup(tmp_path_factory):
 
 def run(setup, out, targets="1,3", **kwargs):
     data, model_dir, cache = setup
-    return pipeline.generate_novel_views(data, out, kwargs.pop("view", 0), kwargs.pop("light", 1), targets,
-                                         model_dir=model_dir, steps=2, cache_dir=cache, **kwargs)
+    return pipeline.generate_novel_views(
+        data,
+        out,
+        kwargs.pop("view", 0),
+        kwargs.pop("light", 1),
+        targets,
+        model_dir=model_dir,
+        steps=2,
+        cache_dir=cache,
+        **kwargs,
+    )
 
 
 def test_outputs_manifest_and_cache(setup, tmp_path, monkeypatch):
     manifest_path = run(setup, tmp_path / "a")
     manifest = json.loads(manifest_path.read_text())
-    assert manifest == [{"view": 1, "light": 1, "image": "view_001.png", "mask": "view_001_mask.png"},
-                        {"view": 3, "light": 1, "image": "view_003.png", "mask": "view_003_mask.png"}]
+    assert manifest == [
+        {"view": 1, "light": 1, "image": "view_001.png", "mask": "view_001_mask.png"},
+        {"view": 3, "light": 1, "image": "view_003.png", "mask": "view_003_mask.png"},
+    ]
     image = iio.imread(tmp_path / "a" / "view_001.png")
     mask = iio.imread(tmp_path / "a" / "view_001_mask.png")
     assert image.shape == (24, 24, 4) and mask.shape == (24, 24)
@@ -68,7 +87,9 @@ def test_json_poses_through_the_command(setup, tmp_path):
     frames = json.loads((data / "transforms_train.json").read_text())["frames"]
     poses = tmp_path / "poses.json"
     poses.write_text(json.dumps([frames[2]["transform_matrix"], frames[4]["transform_matrix"]]))
-    nvs(data, view=0, light=0, targets=str(poses), out=tmp_path / "out", model=model_dir, steps=1, cache=cache)
+    nvs(
+        data, view=0, light=0, targets=str(poses), out=tmp_path / "out", model=model_dir, steps=1, cache=cache
+    )
     manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
     assert [m["image"] for m in manifest] == ["pose_000.png", "pose_001.png"]
     assert all((tmp_path / "out" / m["mask"]).is_file() for m in manifest)
@@ -78,13 +99,16 @@ def test_json_poses_through_the_command(setup, tmp_path):
     torch.testing.assert_close(parsed.w2c, same.w2c, atol=1e-5, rtol=0)
 
 
-@pytest.mark.parametrize(("targets", "message"), [
-    ("1,9", r"unknown view index \[9\]"),
-    ("one,two", "view indices"),
-    ("[[1, 0], [0, 1]]", "4x4"),
-    ('{"frames": [{"matrix": 1}]}', "transform_matrix"),
-    ("{not json", "malformed pose JSON"),
-])
+@pytest.mark.parametrize(
+    ("targets", "message"),
+    [
+        ("1,9", r"unknown view index \[9\]"),
+        ("one,two", "view indices"),
+        ("[[1, 0], [0, 1]]", "4x4"),
+        ('{"frames": [{"matrix": 1}]}', "transform_matrix"),
+        ("{not json", "malformed pose JSON"),
+    ],
+)
 def test_bad_targets_give_clear_errors(setup, tmp_path, targets, message):
     with pytest.raises(ValueError, match=message):
         run(setup, tmp_path, targets=targets)
@@ -96,7 +120,7 @@ def test_bad_reference_and_pose_file_give_clear_errors(setup, tmp_path):
     with pytest.raises(ValueError, match="unknown light index 5"):
         run(setup, tmp_path, light=5)
     bad = tmp_path / "bad.json"
-    bad.write_text('[[1, 0, 0, 0], [0, 1, 0, 0]')
+    bad.write_text("[[1, 0, 0, 0], [0, 1, 0, 0]")
     with pytest.raises(ValueError, match="malformed pose JSON in .*bad.json"):
         run(setup, tmp_path, targets=str(bad))
     with pytest.raises(ValueError, match="not found"):

@@ -15,12 +15,20 @@ TIME = 4 * CH
 
 
 def _resblock(prefix: str, ch: int, out: int) -> dict[str, tuple[int, ...]]:
-    shapes = {f"{prefix}in_layers.0.weight": (ch,), f"{prefix}in_layers.0.bias": (ch,),
-              f"{prefix}in_layers.2.weight": (out, ch, 3, 3), f"{prefix}in_layers.2.bias": (out,),
-              f"{prefix}emb_layers.1.weight": (out, TIME), f"{prefix}emb_layers.1.bias": (out,),
-              f"{prefix}out_layers.0.weight": (out,), f"{prefix}out_layers.0.bias": (out,),
-              f"{prefix}out_layers.3.weight": (out, out, 3, 3), f"{prefix}out_layers.3.bias": (out,),
-              f"{prefix}pose_layers.0.weight": (2 * ch, 78, 1, 1), f"{prefix}pose_layers.0.bias": (2 * ch,)}
+    shapes = {
+        f"{prefix}in_layers.0.weight": (ch,),
+        f"{prefix}in_layers.0.bias": (ch,),
+        f"{prefix}in_layers.2.weight": (out, ch, 3, 3),
+        f"{prefix}in_layers.2.bias": (out,),
+        f"{prefix}emb_layers.1.weight": (out, TIME),
+        f"{prefix}emb_layers.1.bias": (out,),
+        f"{prefix}out_layers.0.weight": (out,),
+        f"{prefix}out_layers.0.bias": (out,),
+        f"{prefix}out_layers.3.weight": (out, out, 3, 3),
+        f"{prefix}out_layers.3.bias": (out,),
+        f"{prefix}pose_layers.0.weight": (2 * ch, 78, 1, 1),
+        f"{prefix}pose_layers.0.bias": (2 * ch,),
+    }
     if ch != out:
         shapes[f"{prefix}skip_connection.weight"] = (out, ch, 1, 1)
         shapes[f"{prefix}skip_connection.bias"] = (out,)
@@ -28,17 +36,29 @@ def _resblock(prefix: str, ch: int, out: int) -> dict[str, tuple[int, ...]]:
 
 
 def _attention(prefix: str, dim: int, context: int) -> dict[str, tuple[int, ...]]:
-    return {f"{prefix}to_q.weight": (dim, dim), f"{prefix}to_k.weight": (dim, context),
-            f"{prefix}to_v.weight": (dim, context), f"{prefix}to_out.0.weight": (dim, dim),
-            f"{prefix}to_out.0.bias": (dim,)}
+    return {
+        f"{prefix}to_q.weight": (dim, dim),
+        f"{prefix}to_k.weight": (dim, context),
+        f"{prefix}to_v.weight": (dim, context),
+        f"{prefix}to_out.0.weight": (dim, dim),
+        f"{prefix}to_out.0.bias": (dim,),
+    }
 
 
 def _transformer(prefix: str, ch: int) -> dict[str, tuple[int, ...]]:
     block = f"{prefix}transformer_blocks.0."
-    shapes = {f"{prefix}norm.weight": (ch,), f"{prefix}norm.bias": (ch,), f"{prefix}proj_in.weight": (ch, ch, 1, 1),
-              f"{prefix}proj_in.bias": (ch,), f"{prefix}proj_out.weight": (ch, ch, 1, 1), f"{prefix}proj_out.bias": (ch,),
-              f"{block}ff.net.0.proj.weight": (8 * ch, ch), f"{block}ff.net.0.proj.bias": (8 * ch,),
-              f"{block}ff.net.2.weight": (ch, 4 * ch), f"{block}ff.net.2.bias": (ch,)}
+    shapes = {
+        f"{prefix}norm.weight": (ch,),
+        f"{prefix}norm.bias": (ch,),
+        f"{prefix}proj_in.weight": (ch, ch, 1, 1),
+        f"{prefix}proj_in.bias": (ch,),
+        f"{prefix}proj_out.weight": (ch, ch, 1, 1),
+        f"{prefix}proj_out.bias": (ch,),
+        f"{block}ff.net.0.proj.weight": (8 * ch, ch),
+        f"{block}ff.net.0.proj.bias": (8 * ch,),
+        f"{block}ff.net.2.weight": (ch, 4 * ch),
+        f"{block}ff.net.2.bias": (ch,),
+    }
     shapes.update(_attention(f"{block}attn1.", ch, ch))
     shapes.update(_attention(f"{block}attn2.", ch, CTX))
     shapes.update(_attention(f"{block}attn3d.", ch, ch))
@@ -51,9 +71,14 @@ def _transformer(prefix: str, ch: int) -> dict[str, tuple[int, ...]]:
 def official_free3d_shapes() -> dict[str, tuple[int, ...]]:
     """Key names and shapes following Free3D's UNetModel construction order."""
     p = "model.diffusion_model."
-    shapes = {f"{p}time_embed.0.weight": (TIME, CH), f"{p}time_embed.0.bias": (TIME,),
-              f"{p}time_embed.2.weight": (TIME, TIME), f"{p}time_embed.2.bias": (TIME,),
-              f"{p}input_blocks.0.0.weight": (CH, IN_CH, 3, 3), f"{p}input_blocks.0.0.bias": (CH,)}
+    shapes = {
+        f"{p}time_embed.0.weight": (TIME, CH),
+        f"{p}time_embed.0.bias": (TIME,),
+        f"{p}time_embed.2.weight": (TIME, TIME),
+        f"{p}time_embed.2.bias": (TIME,),
+        f"{p}input_blocks.0.0.weight": (CH, IN_CH, 3, 3),
+        f"{p}input_blocks.0.0.bias": (CH,),
+    }
     chans, ch, index = [CH], CH, 1
     for level, mult in enumerate(MULT):
         for _ in range(N_RES):
@@ -84,19 +109,34 @@ def official_free3d_shapes() -> dict[str, tuple[int, ...]]:
                 shapes[f"{p}output_blocks.{index}.{layer}.conv.weight"] = (ch, ch, 3, 3)
                 shapes[f"{p}output_blocks.{index}.{layer}.conv.bias"] = (ch,)
             index += 1
-    shapes.update({f"{p}out.0.weight": (ch,), f"{p}out.0.bias": (ch,), f"{p}out.2.weight": (OUT_CH, CH, 3, 3),
-                   f"{p}out.2.bias": (OUT_CH,), "cc_projection.weight": (CTX, CTX), "cc_projection.bias": (CTX,),
-                   "first_stage_model.encoder.conv_in.weight": (8, 3, 3, 3), "betas": (1000,),
-                   "cond_stage_model.model.visual.proj": (16, 8)})
+    shapes.update(
+        {
+            f"{p}out.0.weight": (ch,),
+            f"{p}out.0.bias": (ch,),
+            f"{p}out.2.weight": (OUT_CH, CH, 3, 3),
+            f"{p}out.2.bias": (OUT_CH,),
+            "cc_projection.weight": (CTX, CTX),
+            "cc_projection.bias": (CTX,),
+            "first_stage_model.encoder.conv_in.weight": (8, 3, 3, 3),
+            "betas": (1000,),
+            "cond_stage_model.model.visual.proj": (16, 8),
+        }
+    )
     return shapes
 
 
 def tiny_free3d_config() -> NVSConfig:
-    return NVSConfig(image_size=16, block_out_channels=tuple(CH * m for m in MULT),
-                     down_block_types=("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"),
-                     up_block_types=("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
-                     layers_per_block=N_RES, attention_head_dim=HEADS, norm_num_groups=8, cross_attention_dim=CTX,
-                     embed_dim=CTX - 4)
+    return NVSConfig(
+        image_size=16,
+        block_out_channels=tuple(CH * m for m in MULT),
+        down_block_types=("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"),
+        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
+        layers_per_block=N_RES,
+        attention_head_dim=HEADS,
+        norm_num_groups=8,
+        cross_attention_dim=CTX,
+        embed_dim=CTX - 4,
+    )
 
 
 @pytest.fixture
@@ -108,7 +148,11 @@ def official_state() -> dict[str, torch.Tensor]:
 def test_converter_mapping_is_complete_and_shape_exact(official_state):
     model = NVSModel(tiny_free3d_config())
     converted, skipped = convert_free3d_state_dict(official_state, model.config)
-    assert sorted(skipped) == ["betas", "cond_stage_model.model.visual.proj", "first_stage_model.encoder.conv_in.weight"]
+    assert sorted(skipped) == [
+        "betas",
+        "cond_stage_model.model.visual.proj",
+        "first_stage_model.encoder.conv_in.weight",
+    ]
     ours = model.state_dict()
     expected = {k for k in ours if k.startswith(("unet.", "context_projection."))}
     assert set(converted) == expected  # every official UNet key lands on a distinct key, none is left out
@@ -116,20 +160,30 @@ def test_converter_mapping_is_complete_and_shape_exact(official_state):
         assert value.shape == ours[key].shape, key
     missing, unexpected = model.load_state_dict(converted, strict=False)
     assert unexpected == []
-    assert sorted(missing) == sorted(k for k in ours if k.startswith(("reference_encoder.", "null_embedding")))
+    assert sorted(missing) == sorted(
+        k for k in ours if k.startswith(("reference_encoder.", "null_embedding"))
+    )
     state = model.state_dict()
-    torch.testing.assert_close(state["unet.down_blocks.1.resnets.0.ray_proj.weight"],
-                               official_state["model.diffusion_model.input_blocks.4.0.pose_layers.0.weight"])
-    torch.testing.assert_close(state["unet.up_blocks.1.attentions.2.transformer_blocks.0.attn_mv.to_q.weight"],
-                               official_state["model.diffusion_model.output_blocks.5.1.transformer_blocks.0.attn3d.to_q.weight"])
-    torch.testing.assert_close(state["unet.up_blocks.1.upsamplers.0.conv.weight"],
-                               official_state["model.diffusion_model.output_blocks.5.2.conv.weight"])
+    torch.testing.assert_close(
+        state["unet.down_blocks.1.resnets.0.ray_proj.weight"],
+        official_state["model.diffusion_model.input_blocks.4.0.pose_layers.0.weight"],
+    )
+    torch.testing.assert_close(
+        state["unet.up_blocks.1.attentions.2.transformer_blocks.0.attn_mv.to_q.weight"],
+        official_state["model.diffusion_model.output_blocks.5.1.transformer_blocks.0.attn3d.to_q.weight"],
+    )
+    torch.testing.assert_close(
+        state["unet.up_blocks.1.upsamplers.0.conv.weight"],
+        official_state["model.diffusion_model.output_blocks.5.2.conv.weight"],
+    )
 
 
 def test_converter_rejects_unknown_keys_and_reads_files(official_state, tmp_path):
     config = tiny_free3d_config()
     with pytest.raises(KeyError, match="no mapping"):
-        convert_free3d_state_dict({**official_state, "model.diffusion_model.extra.weight": torch.zeros(1)}, config)
+        convert_free3d_state_dict(
+            {**official_state, "model.diffusion_model.extra.weight": torch.zeros(1)}, config
+        )
     torch.save({"state_dict": official_state}, tmp_path / "free3d.ckpt")
     converted, _ = load_free3d_checkpoint(tmp_path / "free3d.ckpt", config)
     assert len(converted) == len(official_state) - 3

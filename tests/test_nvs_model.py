@@ -1,4 +1,4 @@
-"""Novel-view diffusion model: Plucker rays, harmonic embedding, zero-initialised Free3D layers, shared noise."""
+"""Novel-view model: Plucker rays, harmonic embedding, zero-initialised Free3D layers, shared noise."""
 
 from __future__ import annotations
 
@@ -33,24 +33,45 @@ def _one_thread():
     torch.set_num_threads(threads)
 
 
-TINY = {"image_size": 16, "block_out_channels": (16, 32), "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D"),
-            "up_block_types": ("CrossAttnUpBlock2D", "UpBlock2D"), "attention_head_dim": 8, "norm_num_groups": 8,
-            "cross_attention_dim": 32, "embed_dim": 16, "encoder_channels": (8,)}
+TINY = {
+    "image_size": 16,
+    "block_out_channels": (16, 32),
+    "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D"),
+    "up_block_types": ("CrossAttnUpBlock2D", "UpBlock2D"),
+    "attention_head_dim": 8,
+    "norm_num_groups": 8,
+    "cross_attention_dim": 32,
+    "embed_dim": 16,
+    "encoder_channels": (8,),
+}
 
 
 def camera(azimuth: float, elevation: float = 0.3, radius: float = 4.0) -> torch.Tensor:
-    eye = torch.tensor([radius * math.cos(azimuth) * math.cos(elevation),
-                        radius * math.sin(azimuth) * math.cos(elevation), radius * math.sin(elevation)])
-    return opengl_c2w_to_opencv_w2c(look_at_opengl_c2w(eye, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))).float()
+    eye = torch.tensor(
+        [
+            radius * math.cos(azimuth) * math.cos(elevation),
+            radius * math.sin(azimuth) * math.cos(elevation),
+            radius * math.sin(elevation),
+        ]
+    )
+    return opengl_c2w_to_opencv_w2c(
+        look_at_opengl_c2w(eye, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+    ).float()
 
 
 def tiny_batch(objects: int = 2, views: int = 3, size: int = 16, seed: int = 0) -> NVSBatch:
     g = torch.Generator().manual_seed(seed)
-    target_w2c = torch.stack([torch.stack([camera(0.4 * v + o) for v in range(views)]) for o in range(objects)])
+    target_w2c = torch.stack(
+        [torch.stack([camera(0.4 * v + o) for v in range(views)]) for o in range(objects)]
+    )
     K = intrinsics_from_fov(0.6, size, size).expand(objects, views, 3, 3).clone()
-    return NVSBatch(reference=torch.rand(objects, 4, size, size, generator=g),
-                    reference_w2c=torch.stack([camera(o - 0.7) for o in range(objects)]),
-                    target_w2c=target_w2c, target_K=K, targets=torch.rand(objects, views, 4, size, size, generator=g))
+    return NVSBatch(
+        reference=torch.rand(objects, 4, size, size, generator=g),
+        reference_w2c=torch.stack([camera(o - 0.7) for o in range(objects)]),
+        target_w2c=target_w2c,
+        target_K=K,
+        targets=torch.rand(objects, views, 4, size, size, generator=g),
+    )
 
 
 def test_plucker_rays_of_identical_cameras_are_pixel_directions_with_zero_moment():
@@ -87,15 +108,30 @@ def test_plucker_rays_are_invariant_to_the_world_frame():
     rigid[:2, :2] = torch.tensor([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
     rigid[:3, 3] = torch.tensor([0.3, -1.0, 2.0])
     moved = [w @ torch.linalg.inv(rigid) for w in (target, reference)]
-    torch.testing.assert_close(plucker_rays(*moved, K, 4, 4), plucker_rays(target, reference, K, 4, 4),
-                               atol=1e-4, rtol=0)
+    torch.testing.assert_close(
+        plucker_rays(*moved, K, 4, 4), plucker_rays(target, reference, K, 4, 4), atol=1e-4, rtol=0
+    )
 
 
 def test_harmonic_embedding_layout_and_ray_embedding_channels():
     x = torch.tensor([[0.5, -1.0]])
     emb = harmonic_embedding(x, n_frequencies=3)
-    expected = [math.sin(0.5), math.sin(1.0), math.sin(2.0), math.sin(-1.0), math.sin(-2.0), math.sin(-4.0),
-                math.cos(0.5), math.cos(1.0), math.cos(2.0), math.cos(-1.0), math.cos(-2.0), math.cos(-4.0), 0.5, -1.0]
+    expected = [
+        math.sin(0.5),
+        math.sin(1.0),
+        math.sin(2.0),
+        math.sin(-1.0),
+        math.sin(-2.0),
+        math.sin(-4.0),
+        math.cos(0.5),
+        math.cos(1.0),
+        math.cos(2.0),
+        math.cos(-1.0),
+        math.cos(-2.0),
+        math.cos(-4.0),
+        0.5,
+        -1.0,
+    ]
     torch.testing.assert_close(emb[0], torch.tensor(expected))
     assert ray_embedding(camera(0.2), camera(0.0), intrinsics_from_fov(0.6, 4, 4), 4, 4).shape == (78, 4, 4)
 
@@ -115,7 +151,9 @@ def _set_random(module: torch.nn.Module, names: tuple[str, ...], seed: int) -> N
                 p.copy_(torch.randn(p.shape, generator=g) * 0.2)
 
 
-def _denoise(model: NVSModel, batch: NVSBatch, rays_scale: float = 1.0, views: int | None = None) -> torch.Tensor:
+def _denoise(
+    model: NVSModel, batch: NVSBatch, rays_scale: float = 1.0, views: int | None = None
+) -> torch.Tensor:
     b, v = batch.target_w2c.shape[:2]
     g = torch.Generator().manual_seed(3)
     ref = model.encode(batch.reference).repeat_interleave(v, 0)
@@ -182,9 +220,16 @@ def test_latent_space_round_trip_uses_the_vae_scale():
     from diffusers import AutoencoderKL
 
     torch.manual_seed(0)
-    vae = AutoencoderKL(in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(8, 8, 8, 8),
-                        down_block_types=("DownEncoderBlock2D",) * 4, up_block_types=("UpDecoderBlock2D",) * 4,
-                        norm_num_groups=4, sample_size=32)
+    vae = AutoencoderKL(
+        in_channels=3,
+        out_channels=3,
+        latent_channels=4,
+        block_out_channels=(8, 8, 8, 8),
+        down_block_types=("DownEncoderBlock2D",) * 4,
+        up_block_types=("UpDecoderBlock2D",) * 4,
+        norm_num_groups=4,
+        sample_size=32,
+    )
     model = NVSModel(NVSConfig(**{**TINY, "space": "latent", "image_size": 32}), vae=vae).eval()
     rgba = torch.rand(2, 4, 32, 32)
     with torch.no_grad():

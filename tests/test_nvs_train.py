@@ -11,9 +11,17 @@ from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.diffusion.nvs.train import FinetuneConfig, finetune
 from diamond_sss.utils.io import load_safetensors
 
-TINY = {"image_size": 16, "block_out_channels": (16, 32), "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D"),
-        "up_block_types": ("CrossAttnUpBlock2D", "UpBlock2D"), "attention_head_dim": 8, "norm_num_groups": 8,
-        "cross_attention_dim": 32, "embed_dim": 16, "encoder_channels": (8,)}
+TINY = {
+    "image_size": 16,
+    "block_out_channels": (16, 32),
+    "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D"),
+    "up_block_types": ("CrossAttnUpBlock2D", "UpBlock2D"),
+    "attention_head_dim": 8,
+    "norm_num_groups": 8,
+    "cross_attention_dim": 32,
+    "embed_dim": 16,
+    "encoder_channels": (8,),
+}
 
 
 @pytest.fixture(autouse=True)
@@ -52,7 +60,9 @@ def test_training_steps_overfit_one_sample(objects):
     optimizer = torch.optim.Adam(model.trainable_parameters(), lr=2e-3)
     losses = []
     for _ in range(40):
-        loss = model.training_loss(batch, generator=torch.Generator().manual_seed(7))  # same noise and timestep
+        loss = model.training_loss(
+            batch, generator=torch.Generator().manual_seed(7)
+        )  # same noise and timestep
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -69,13 +79,22 @@ def test_gradient_checkpointing_gives_the_same_gradients(objects):
         model.enable_gradient_checkpointing(enabled)
         model.zero_grad()
         model.training_loss(batch, generator=torch.Generator().manual_seed(3)).backward()
-        grads.append(torch.cat([p.grad.flatten() for p in model.trainable_parameters() if p.grad is not None]))
+        grads.append(
+            torch.cat([p.grad.flatten() for p in model.trainable_parameters() if p.grad is not None])
+        )
     torch.testing.assert_close(grads[0], grads[1])
 
 
 def test_finetune_resumes_exactly_and_writes_a_loadable_model(objects, tmp_path):
-    config = FinetuneConfig(steps=4, objects_per_batch=2, views_per_object=2, warmup_steps=2, checkpoint_every=2,
-                            log_every=1, model=NVSConfig(**TINY))
+    config = FinetuneConfig(
+        steps=4,
+        objects_per_batch=2,
+        views_per_object=2,
+        warmup_steps=2,
+        checkpoint_every=2,
+        log_every=1,
+        model=NVSConfig(**TINY),
+    )
     straight = finetune(objects, tmp_path / "straight", config, log=lambda _: None)
     config.steps = 2
     finetune(objects, tmp_path / "resumed", config, log=lambda _: None)
@@ -87,5 +106,8 @@ def test_finetune_resumes_exactly_and_writes_a_loadable_model(objects, tmp_path)
     assert a.keys() == b.keys()
     for key in a:
         torch.testing.assert_close(a[key], b[key], atol=1e-6, rtol=0, msg=key)
-    assert sorted(p.name for p in (tmp_path / "resumed" / "checkpoints").iterdir()) == ["step_0000002", "step_0000004"]
+    assert sorted(p.name for p in (tmp_path / "resumed" / "checkpoints").iterdir()) == [
+        "step_00000002",
+        "step_00000004",
+    ]
     NVSModel.load(resumed)

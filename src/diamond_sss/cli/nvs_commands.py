@@ -7,11 +7,22 @@ from pathlib import Path
 from rich.console import Console
 
 
-def finetune_nvs(out: Path, data: list[Path] | None = None, steps: int = 1000, objects_per_batch: int = 4,
-                 views_per_object: int = 4, learning_rate: float = 1e-4, warmup_steps: int = 100,
-                 image_size: int = 32, space: str = "pixel", vae: Path | None = None,
-                 gradient_checkpointing: bool = True, checkpoint_every: int = 200, seed: int = 0,
-                 resume: bool = True) -> None:
+def finetune_nvs(
+    out: Path,
+    data: list[Path] | None = None,
+    steps: int = 1000,
+    objects_per_batch: int = 4,
+    views_per_object: int = 4,
+    learning_rate: float = 1e-4,
+    warmup_steps: int = 100,
+    image_size: int = 32,
+    space: str = "pixel",
+    vae: Path | None = None,
+    gradient_checkpointing: bool = True,
+    checkpoint_every: int = 200,
+    seed: int = 0,
+    resume: bool = True,
+) -> None:
     """Fine-tune the Free3D-style novel-view model on fixed-illumination multi-view sequences.
 
     Writes <out>/model (config.json + model.safetensors, EMA weights), checkpoints and train_log.jsonl.
@@ -42,18 +53,36 @@ def finetune_nvs(out: Path, data: list[Path] | None = None, steps: int = 1000, o
     if not data:
         raise ValueError("no fine-tuning data: pass --data or install the embedded fine-tuning objects")
     model = NVSConfig(space=space, image_size=image_size, vae_path=None if vae is None else str(vae))
-    config = FinetuneConfig(steps=steps, objects_per_batch=objects_per_batch, views_per_object=views_per_object,
-                            learning_rate=learning_rate, warmup_steps=warmup_steps,
-                            gradient_checkpointing=gradient_checkpointing, checkpoint_every=checkpoint_every,
-                            seed=seed, model=model)
+    config = FinetuneConfig(
+        steps=steps,
+        objects_per_batch=objects_per_batch,
+        views_per_object=views_per_object,
+        learning_rate=learning_rate,
+        warmup_steps=warmup_steps,
+        gradient_checkpointing=gradient_checkpointing,
+        checkpoint_every=checkpoint_every,
+        seed=seed,
+        model=model,
+    )
     console = Console()
     folder = finetune(data, out, config, resume=resume, log=console.print)
     console.print(f"model -> {folder}")
 
 
-def nvs(data: Path, view: int, light: int, targets: str, out: Path, split: str = "train",
-        model: Path | None = None, steps: int = 50, guidance_scale: float = 3.0, seed: int = 0,
-        cache: Path | None = None, device: str = "cpu") -> None:
+def nvs(
+    data: Path,
+    view: int,
+    light: int,
+    targets: str,
+    out: Path,
+    split: str = "train",
+    model: Path | None = None,
+    steps: int = 50,
+    guidance_scale: float = 3.0,
+    seed: int = 0,
+    cache: Path | None = None,
+    device: str = "cpu",
+) -> None:
     """Generate novel views of an object under a fixed light from one reference image (Free3D-style model).
 
     Writes <out>/<name>.png (sRGB, premultiplied, with alpha), <out>/<name>_mask.png and <out>/manifest.json
@@ -76,6 +105,18 @@ def nvs(data: Path, view: int, light: int, targets: str, out: Path, split: str =
     """
     from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
 
-    manifest = generate_novel_views(data, out, view, light, targets, split=split, model_dir=model, steps=steps,
-                                    guidance_scale=guidance_scale, seed=seed, cache_dir=cache, device=device)
+    manifest = generate_novel_views(
+        data,
+        out,
+        view,
+        light,
+        targets,
+        split=split,
+        model_dir=model,
+        steps=steps,
+        guidance_scale=guidance_scale,
+        seed=seed,
+        cache_dir=cache,
+        device=device,
+    )
     Console().print(f"novel views -> {manifest}")

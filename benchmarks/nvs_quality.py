@@ -1,0 +1,183 @@
+"""Novel-view model quality on held-out synthetic objects vs. a Gaussian reconstruction of the same input.
+
+For each object (never one of the fine-tuning objects) and its light 0, the reference view generates every
+other view; PSNR / SSIM (sRGB, full frame) and mask IoU against the rendered ground truth are binned by the
+angle between target and reference cameras. Baseline: the relightable Gaussian model trained (short CPU
+schedule) on the same single reference image, rendered at the target cameras under the same light.
+Writes benchmarks/results/nvs_quality/{nvs_quality.json, nvs_quality.md}.
+
+    python -m diamond_sss.synth.cli --shape torus --material marble --seed 21 --out /tmp/nvs/torus \\
+        --views 12 --lights 1 --size 64 --spp 32 --test-views 0 --test-lights 0 --no-maps
+    python benchmarks/nvs_quality.py --data /tmp/nvs/torus /tmp/nvs/bunny --baseline-iterations 150
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from diamond_sss.data import OLATDataset
+from diamond_sss.data.images import load_rgba
+from diamond_sss.diffusion.nvs.pipeline import default_model_dir, generate_novel_views
+from diamond_sss.diffusion.nvs.rays import view_angle_degrees
+from diamond_sss.evaluation.metrics import image_metrics
+from diamond_sss.training.config import short_schedule
+from diamond_sss.training.run import train_run
+from diamond_sss.training.trainer import load_scene
+
+RESULTS = Path(__file__).resolve().parent / "results" / "nvs_quality"
+ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 181))
+
+
+def single_image_capture(data: Path, view: int, light: int, out: Path) -> Path:
+    """A capture folder holding only image ``(view, light)`` of ``data`` (frames point at the originals)."""
+    transforms = json.loads((data / "transforms_train.json").read_text())
+    dataset = OLATDataset(data, "train")
+    obs = dataset.observations[dataset.observation_index(view, light)]
+    frame = dict(transforms["frames"][obs.frame])
+    k = [str((data / p).resolve()) for p in frame["file_paths"]].index(str(Path(obs.image_path).resolve()))
+    frame["file_paths"] = [str((data / frame["file_paths"][k]).resolve())]
+    for key in ("light_positions", "light_intensities"):
+        frame[key] = [frame[key][k]]
+    for key in ("depth_path", "normal_path"):
+        frame.pop(key, None)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "transforms_train.json").write_text(json.dumps({**transforms, "frames": [frame]}))
+    return out
+
+
+def baseline_renders(data: Path, view: int, light: int, targets: list[int], out: Path, iterations: int):
+    """Linear RGB ``[T,H,W,3]`` and alpha ``[T,H,W,1]`` of Gaussians fitted to the one reference image."""
+    dataset = OLATDataset(data, "train")
+    capture = single_image_capture(data, view, light, out / "capture")
+    overrides = {**short_schedule(iterations), "device": "cpu", "lambda_lpips": 0.0}
+    train_run(capture, out / "run", overrides=overrides, resume=True, show_progress=False)
+    scene, _ = load_scene(out / "run")
+    n = len(targets)
+    with torch.no_grad():
+        render = scene.render(
+            dataset.viewmats[targets],
+            dataset.intrinsics[targets],
+            dataset.width,
+            dataset.height,
+            dataset.light_positions[light].expand(n, 3),
+            dataset.light_intensities[light].expand(n, 3),
+        )
+    return render.radiance.clamp(0, 1), render.gbuffer.alpha
+
+
+def evaluate_object(
+    data: Path, model: Path, out: Path, view: int, light: int, steps: int, guidance: float, iterations: int
+) -> list[dict]:
+    dataset = OLATDataset(data, "train")
+    targets = [v for v in range(dataset.num_views) if v != view and bool(dataset.presence[v, light])]
+    started = time.perf_counter()
+    manifest = generate_novel_views(
+        data,
+        out / "nvs",
+        view,
+        light,
+        ",".join(map(str, targets)),
+        model_dir=model,
+        steps=steps,
+        guidance_scale=guidance,
+        cache_dir=out / "cache",
+    )
+    nvs_seconds = time.perf_counter() - started
+    entries = json.loads(manifest.read_text())
+    started = time.perf_counter()
+    base_rgb, base_alpha = baseline_renders(data, view, light, targets, out / "baseline", iterations)
+    base_seconds = time.perf_counter() - started
+    angles = view_angle_degrees(dataset.viewmats[targets], dataset.viewmats[view].expand(len(targets), 4, 4))
+    rows = []
+    for i, (target, entry) in enumerate(zip(targets, entries)):
+        truth = dataset.load(dataset.observation_index(target, light))
+        rgb, alpha = load_rgba(out / "nvs" / entry["image"])
+        for method, pred, pred_alpha in (("nvs", rgb, alpha), ("gaussians", base_rgb[i], base_alpha[i])):
+            m = image_metrics(pred, truth.rgb, pred_alpha, truth.mask)
+            rows.append(
+                {
+                    "object": data.name,
+                    "view": target,
+                    "angle": float(angles[i]),
+                    "method": method,
+                    "psnr": m.psnr,
+                    "ssim": m.ssim,
+                    "mask_iou": m.mask_iou,
+                }
+            )
+    print(f"{data.name}: nvs {nvs_seconds:.1f} s, baseline {base_seconds:.1f} s")
+    return rows
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    table = []
+    for low, high in ANGLE_BINS:
+        for method in ("nvs", "gaussians"):
+            sel = [r for r in rows if r["method"] == method and low <= r["angle"] < high]
+            if sel:
+                table.append(
+                    {
+                        "angles": f"{low}-{min(high, 180)}",
+                        "method": method,
+                        "images": len(sel),
+                        **{k: sum(r[k] for r in sel) / len(sel) for k in ("psnr", "ssim", "mask_iou")},
+                    }
+                )
+    return table
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--data", type=Path, nargs="+", required=True, help="held-out synthetic captures")
+    parser.add_argument(
+        "--model", type=Path, default=None, help="NVS model folder (default: the shipped one)"
+    )
+    parser.add_argument("--view", type=int, default=0, help="reference view")
+    parser.add_argument("--light", type=int, default=0)
+    parser.add_argument("--steps", type=int, default=25, help="DDIM steps")
+    parser.add_argument("--guidance", type=float, default=2.0)
+    parser.add_argument("--baseline-iterations", type=int, default=150)
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    model = args.model or default_model_dir()
+    rows = []
+    for data in args.data:
+        rows += evaluate_object(
+            data,
+            model,
+            args.out / "work" / data.name,
+            args.view,
+            args.light,
+            args.steps,
+            args.guidance,
+            args.baseline_iterations,
+        )
+    table = summarise(rows)
+    lines = [
+        "| angle from reference (deg) | method | images | PSNR | SSIM | mask IoU |",
+        "|---|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r['angles']} | {r['method']} | {r['images']} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
+        f"{r['mask_iou']:.3f} |"
+        for r in table
+    ]
+    args.out.mkdir(parents=True, exist_ok=True)
+    settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
+    settings["data"] = [str(d) for d in args.data]
+    (args.out / "nvs_quality.json").write_text(
+        json.dumps({"settings": settings, "summary": table, "images": rows}, indent=2) + "\n"
+    )
+    (args.out / "nvs_quality.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
