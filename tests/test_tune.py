@@ -170,6 +170,15 @@ def test_median_pruner_stops_a_poor_trial(capture, tmp_path, monkeypatch):
     assert study.trials[2].intermediate_values == {1: 10.0, 2: 10.0}  # warm-up step 1, pruned at step 2
 
 
+def test_tune_rejects_contradictory_options(capture, tmp_path):
+    with pytest.raises(ValueError, match="ask for at least 2 or pass --no-enqueue-presets"):
+        tune(capture, tmp_path, trials=1)
+    with pytest.raises(ValueError, match="--set lambda_dssim: 'lambda_dssim' is searched"):
+        tune(capture, tmp_path, set_=["lambda_dssim=0.3"])
+    with pytest.raises(ValueError, match="'iterations' is set by --iterations"):
+        tune(capture, tmp_path, set_=["iterations=3"])
+
+
 def test_tiny_study_end_to_end_on_sqlite(capture, tmp_path):
     out = tmp_path / "tune"
     sets = [*TINY_SETS]

@@ -56,6 +56,9 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
     from diamond_sss.tuning.study import StudySettings, default_storage, open_study, run_worker
     from diamond_sss.tuning.validation import load_tune_data
 
+    if enqueue_presets and trials < 2 and not report_only:
+        raise ValueError(f"--trials {trials}: a study starts with the two preset trials; ask for at least 2 "
+                         "or pass --no-enqueue-presets")
     overrides = {"seed": seed, "device": device}
     for item in set_:
         if "=" not in item:
