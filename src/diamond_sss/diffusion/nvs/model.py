@@ -117,7 +117,7 @@ def make_train_scheduler(config: NVSConfig) -> DDPMScheduler:
 
 
 def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
-    """Deterministic DDIM sampler (``eta = 0``) on the same schedule."""
+    """Deterministic DDIM (``eta = 0``) on the same schedule; the last step returns the clean estimate."""
     return DDIMScheduler(
         num_train_timesteps=config.num_train_timesteps,
         beta_start=config.beta_start,
@@ -125,7 +125,7 @@ def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
         beta_schedule=config.beta_schedule,
         prediction_type=config.prediction_type,
         clip_sample=False,
-        set_alpha_to_one=False,
+        set_alpha_to_one=True,
         steps_offset=1,
     )
 
