@@ -148,13 +148,14 @@ def finetune(views: RelightViews, out: str | os.PathLike, model: RelightDiffusio
         schedule.step()
         ema.update(unwrapped)
         done = step + 1
-        if log is not None and (done % config.log_every == 0 or done == config.steps):
+        out_of_time = config.time_limit_s is not None and time.time() - started > config.time_limit_s
+        if done % config.log_every == 0 or done == config.steps or out_of_time:
             record = {"step": done, "loss": float(loss.detach()), **terms, "lr": schedule.get_last_lr()[0],
                       "elapsed_s": time.time() - started}
             with open(out / "log.jsonl", "a") as handle:
                 handle.write(json.dumps(record) + "\n")
-            log(record)
-        out_of_time = config.time_limit_s is not None and time.time() - started > config.time_limit_s
+            if log is not None:
+                log(record)
         if done % config.checkpoint_every == 0 or done == config.steps or out_of_time:
             save_checkpoint(accelerator, checkpoint_root, done)
             with ema.averaged(unwrapped):

@@ -1,0 +1,107 @@
+"""Relighting fine-tuning: sample selection (<= 7%), one-sample overfit, losses, EMA, exact resume."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from diamond_sss.data.embedded import embedded_dataset
+from diamond_sss.data.errors import DataError
+from diamond_sss.diffusion.common.ema import EMA
+from diamond_sss.diffusion.relight.data import load_finetune_views, load_relight_views
+from diamond_sss.diffusion.relight.losses import RelightLossWeights, low_frequency_l1
+from diamond_sss.diffusion.relight.model import RelightDiffusion
+from diamond_sss.diffusion.relight.train import RelightTrainConfig, finetune, lr_factor, training_loss
+from test_relight_model import tiny_model
+
+
+@pytest.fixture(scope="module")
+def views():
+    return load_relight_views([embedded_dataset("finetune/torus_jade")], resolution=16)
+
+
+def test_finetune_selection_is_recorded_and_small():
+    selection = load_finetune_views(resolution=16).selection
+    assert len(selection["fraction_of_capture"]) == 4
+    assert all(0 < f <= 0.07 for f in selection["fraction_of_capture"].values())
+    objects = {record["object"] for record in selection["images"]}
+    assert objects == set(selection["fraction_of_capture"])
+    with pytest.raises(DataError, match="more than 1%"):
+        load_relight_views([embedded_dataset("finetune/torus_jade")], resolution=16, max_fraction=0.01)
+
+
+def test_batches_fix_the_view_and_change_the_light(views):
+    view, source, target = views.random_indices(64, torch.Generator().manual_seed(0))
+    assert bool((source != target).all())
+    batch = views.batch(view, source, target)
+    assert batch["conditioning"].shape == (64, 8, 16, 16)
+    # The conditioning's geometry channels are those of the sample's view, whatever the lights.
+    assert torch.equal(batch["conditioning"][:, 3:], views.maps[view])
+    assert torch.equal(batch["target"], views.images[view, target])
+
+
+def test_low_frequency_term_ignores_high_frequencies():
+    base = torch.zeros(1, 3, 8, 8)
+    checker = (torch.arange(8)[:, None] + torch.arange(8)[None]) % 2 * 2.0 - 1.0
+    assert float(low_frequency_l1(base + checker, base, 4)) == pytest.approx(0.0, abs=1e-6)
+    assert float(low_frequency_l1(base + 0.5, base, 4)) == pytest.approx(0.5)
+
+
+def test_one_sample_is_overfit(views):
+    torch.manual_seed(0)
+    model = tiny_model()
+    batch = views.batch(torch.tensor([0]), torch.tensor([0]), torch.tensor([3]))
+    weights = RelightLossWeights(ssim=0.0, cycle=0.0)
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(60):
+        loss, terms = training_loss(model, batch, weights, torch.Generator().manual_seed(0), with_cycle=False)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(terms["l1"])
+    assert losses[-1] < 0.25 * losses[0]
+
+
+def test_cycle_term_is_computed(views):
+    batch = views.batch(torch.tensor([0, 1]), torch.tensor([0, 2]), torch.tensor([3, 4]))
+    loss, terms = training_loss(tiny_model(), batch, RelightLossWeights(), torch.Generator().manual_seed(0),
+                                with_cycle=True)
+    assert set(terms) == {"v_mse", "l1", "ssim", "low_frequency", "cycle"}
+    assert bool(torch.isfinite(loss))
+
+
+def test_lr_schedule():
+    assert lr_factor(0, 10, 100) == pytest.approx(0.1)
+    assert lr_factor(9, 10, 100) == pytest.approx(1.0)
+    assert lr_factor(100, 10, 100) == pytest.approx(0.1)
+
+
+def test_ema_tracks_and_restores():
+    model = torch.nn.Linear(2, 1)
+    ema = EMA(model, decay=0.5)
+    before = model.weight.detach().clone()
+    with torch.no_grad():
+        model.weight.add_(1.0)
+    ema.update(model)  # warm-up decay min(0.5, 1/10) = 0.1
+    assert torch.allclose(ema.shadow["weight"], before + 0.9)
+    with ema.averaged(model):
+        assert torch.allclose(model.weight, before + 0.9)
+    assert torch.allclose(model.weight, before + 1.0)
+
+
+def test_resume_continues_exactly(views, tmp_path):
+    config = RelightTrainConfig(steps=3, batch_size=2, checkpoint_every=1, log_every=1, cycle_every=2)
+    straight = finetune(views, tmp_path / "straight", tiny_model(), config)
+    stopped = RelightTrainConfig(**{**config.__dict__, "time_limit_s": 0.0})
+    finetune(views, tmp_path / "resumed", tiny_model(), stopped)
+    steps = [json.loads(line)["step"] for line in (tmp_path / "resumed" / "log.jsonl").read_text().splitlines()]
+    assert steps == [1]
+    resumed = finetune(views, tmp_path / "resumed", tiny_model(seed=5), config)
+    a, b = RelightDiffusion.load(straight).state_dict(), RelightDiffusion.load(resumed).state_dict()
+    assert all(torch.allclose(a[k], b[k], atol=1e-6) for k in a)
+    assert sorted(p.name for p in (tmp_path / "resumed" / "checkpoints").iterdir()) == ["step_00000002",
+                                                                                         "step_00000003"]
+    assert json.loads((tmp_path / "resumed" / "selection.json").read_text())["images"]
