@@ -38,8 +38,9 @@ def make_ddpm_scheduler(config: SchedulerConfig) -> DDPMScheduler:
 
 
 def make_ddim_scheduler(config: SchedulerConfig) -> DDIMScheduler:
-    """Sampling scheduler; ``trailing`` spacing so the first step starts at pure noise (zero terminal SNR)."""
-    return DDIMScheduler(**config.kwargs(), clip_sample=False, set_alpha_to_one=False, timestep_spacing="trailing")
+    """Sampling scheduler: ``trailing`` spacing (the first step starts at pure noise, zero terminal SNR) and a
+    last step that lands on the clean prediction."""
+    return DDIMScheduler(**config.kwargs(), clip_sample=False, set_alpha_to_one=True, timestep_spacing="trailing")
 
 
 DenoiseFn = Callable[[Tensor, Tensor], Tensor]

@@ -1,0 +1,82 @@
+"""Shared diffusion utilities: output cache, hashing, DDIM loop, checkpoints."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from accelerate import Accelerator
+
+from diamond_sss.diffusion.common.cache import OutputCache
+from diamond_sss.diffusion.common.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from diamond_sss.diffusion.common.hashing import files_hash, state_dict_hash
+from diamond_sss.diffusion.common.sampling import SchedulerConfig, ddim_sample, make_ddim_scheduler
+
+
+def test_cache_entries_are_keyed_and_atomic(tmp_path):
+    cache = OutputCache(tmp_path)
+    key = cache.key({"model": "abc", "input": [1, 2]})
+    assert key == cache.key({"input": [1, 2], "model": "abc"}) and key != cache.key({"model": "abd", "input": [1, 2]})
+    assert cache.get(key) is None
+
+    def failing(folder):
+        (folder / "half.txt").write_text("x")
+        raise RuntimeError("crash")
+
+    with pytest.raises(RuntimeError):
+        cache.put(key, failing)
+    assert cache.get(key) is None and not list(tmp_path.rglob("*.tmp"))
+    calls = []
+    entry, hit = cache.get_or_create(key, lambda folder: (calls.append(1), (folder / "a.txt").write_text("1")))
+    assert not hit and (entry / "a.txt").read_text() == "1"
+    again, hit = cache.get_or_create(key, lambda folder: calls.append(1))
+    assert hit and again == entry and calls == [1]
+
+
+def test_hashes_follow_content(tmp_path):
+    a = {"w": torch.ones(2, 2)}
+    assert state_dict_hash(a) == state_dict_hash({"w": torch.ones(2, 2)})
+    assert state_dict_hash(a) != state_dict_hash({"w": torch.ones(2, 2) * 2})
+    assert state_dict_hash(a) != state_dict_hash({"w": torch.ones(4)})
+    (tmp_path / "config.json").write_text("{}")
+    first = files_hash(tmp_path)
+    (tmp_path / "config.json").write_text("{ }")
+    assert files_hash(tmp_path) != first
+    with pytest.raises(FileNotFoundError):
+        files_hash(tmp_path / "missing")
+
+
+def test_ddim_with_an_exact_denoiser_recovers_the_target():
+    """A denoiser that returns the true velocity towards ``x0`` makes DDIM land on ``x0``."""
+    scheduler = make_ddim_scheduler(SchedulerConfig())
+    alphas = scheduler.alphas_cumprod
+    x0 = torch.linspace(-0.8, 0.8, 12).reshape(1, 3, 2, 2)
+
+    def denoise(x, t):
+        a = alphas[t].sqrt().reshape(-1, 1, 1, 1)
+        s = (1 - alphas[t]).sqrt().reshape(-1, 1, 1, 1)
+        eps = (x - a * x0) / s.clamp_min(1e-6)
+        return a * eps - s * x0
+
+    out = ddim_sample(denoise, (1, 3, 2, 2), scheduler, 10, torch.Generator().manual_seed(0))
+    assert torch.allclose(out, x0, atol=1e-3)
+    noise = torch.randn(1, 3, 2, 2, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(ddim_sample(lambda x, t: torch.zeros_like(x), (1, 3, 2, 2), scheduler, 3, noise=noise),
+                       ddim_sample(lambda x, t: torch.zeros_like(x), (1, 3, 2, 2), scheduler, 3,
+                                   torch.Generator().manual_seed(0)))
+    with pytest.raises(ValueError, match="num_steps"):
+        ddim_sample(denoise, (1, 3, 2, 2), scheduler, 0)
+
+
+def test_checkpoints_are_complete_and_pruned(tmp_path):
+    accelerator = Accelerator(cpu=True)
+    model = accelerator.prepare(torch.nn.Linear(2, 2))
+    for step in (1, 2, 3):
+        save_checkpoint(accelerator, tmp_path, step, extra={"note": step}, keep=2)
+    assert [p.name for p in sorted(tmp_path.iterdir())] == ["step_00000002", "step_00000003"]
+    (tmp_path / "step_00000009").mkdir()  # incomplete: no extra.json
+    assert latest_checkpoint(tmp_path).name == "step_00000003"
+    saved = model.weight.detach().clone()
+    with torch.no_grad():
+        model.weight.zero_()
+    assert load_checkpoint(accelerator, tmp_path / "step_00000003") == {"step": 3, "note": 3}
+    assert torch.equal(model.weight, saved)
