@@ -29,7 +29,7 @@ from diamond_sss.tuning.space import (
     scale_schedule,
     suggest_params,
 )
-from diamond_sss.tuning.study import StudySettings, budget_used, open_study, run_worker
+from diamond_sss.tuning.study import StudySettings, budget_used, make_storage, open_study, run_worker
 from diamond_sss.tuning.validation import holdout_positions, load_tune_data, validation_psnr
 
 # fixed keys that keep a trial tiny: 12 px, few random Gaussians, no multi-view or ray-traced terms
@@ -177,6 +177,16 @@ def test_tune_rejects_contradictory_options(capture, tmp_path):
         tune(capture, tmp_path, set_=["lambda_dssim=0.3"])
     with pytest.raises(ValueError, match="'iterations' is set by --iterations"):
         tune(capture, tmp_path, set_=["iterations=3"])
+
+
+def test_bad_storage_urls_give_clear_errors():
+    with pytest.raises(ValueError, match="'nonsense' is not an SQLAlchemy URL"):
+        make_storage(StudySettings(storage="nonsense"))
+    pytest.importorskip("psycopg2", reason="psycopg2 is not installed (the 'tune' extra)")
+    masked = "cannot open storage postgresql.*://user:\\*\\*\\*@127.0.0.1:1/db"
+    with pytest.raises(ValueError, match=masked) as info:
+        make_storage(StudySettings(storage="postgresql://user:secret@127.0.0.1:1/db"))
+    assert "secret" not in str(info.value) and "Connection refused" in str(info.value)
 
 
 def test_tiny_study_end_to_end_on_sqlite(capture, tmp_path):

@@ -87,7 +87,14 @@ class ObjectiveSettings:
 
 
 class Objective:
-    """``objective(trial) -> validation PSNR (dB)`` for :meth:`optuna.Study.optimize` (to maximise)."""
+    """``objective(trial) -> validation PSNR (dB)`` for :meth:`optuna.Study.optimize` (to maximise).
+
+    Args:
+        data: training and validation images.
+        settings: how trials train.
+        work_dir: parent of the trials' run folders (a trial writes no checkpoint, log or model).
+        space: the searched keys.
+    """
 
     def __init__(self, data: TuneData, settings: ObjectiveSettings, work_dir: Path,
                  space: Mapping[str, ParamRange] = SEARCH_SPACE) -> None:

@@ -14,6 +14,7 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from importlib.util import find_spec
 from pathlib import Path
 from typing import Any
 
@@ -81,12 +82,32 @@ def _retry_callback(max_retry: int) -> tuple[str, Callable[[optuna.Study, Frozen
         return "failed_trial_callback", optuna.storages.RetryFailedTrialCallback(max_retry)
 
 
+def masked_url(url: str) -> str:
+    """``url`` with its password replaced by ``***`` (for messages and reports)."""
+    return sqlalchemy.engine.make_url(url).render_as_string(hide_password=True)
+
+
+def with_installed_driver(url: str) -> str:
+    """``postgresql://`` URLs name the ``psycopg2`` driver when it is the one installed.
+
+    (SQLAlchemy 2.1 defaults to ``psycopg`` 3; the ``tune`` extra installs ``psycopg2``.)
+    """
+    try:
+        parsed = sqlalchemy.engine.make_url(url)
+    except sqlalchemy.exc.ArgumentError:
+        return url
+    missing_default = find_spec("psycopg") is None
+    if parsed.drivername == "postgresql" and missing_default and find_spec("psycopg2") is not None:
+        return parsed.set(drivername="postgresql+psycopg2").render_as_string(hide_password=False)
+    return url
+
+
 def make_storage(settings: StudySettings) -> optuna.storages.RDBStorage:
     """An RDB storage with heartbeats and the retry callback; SQLite waits on locks instead of failing.
 
     Creating Optuna's tables is retried: workers started together on an empty database race to do it.
     """
-    url = settings.storage
+    url = with_installed_driver(settings.storage)
     engine_kwargs: dict[str, Any] = {"pool_pre_ping": True}
     if url.startswith("sqlite"):
         engine_kwargs = {"connect_args": {"timeout": 60}}
@@ -105,6 +126,13 @@ def make_storage(settings: StudySettings) -> optuna.storages.RDBStorage:
             if attempt == SCHEMA_ATTEMPTS:
                 raise
             time.sleep(0.5 * attempt)
+        except sqlalchemy.exc.ArgumentError as exc:
+            raise ValueError(f"storage '{url}' is not an SQLAlchemy URL ({exc})") from exc
+        except sqlalchemy.exc.OperationalError as exc:
+            raise ValueError(f"cannot open storage {masked_url(url)}: {exc.orig}") from exc
+        except ImportError as exc:
+            raise ValueError(f"storage {masked_url(url)}: its database driver is not installed "
+                             "(pip install 'diamond-sss[tune]' for PostgreSQL)") from exc
 
 
 def open_study(settings: StudySettings, fingerprint: dict[str, Any]) -> optuna.Study:
