@@ -49,6 +49,10 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
         enqueue_presets: the study's creator enqueues the sss3dgs and diamond presets as its first trials.
         report_only: only write the outputs of the study as it stands.
     """
+    try:
+        import optuna  # noqa: F401
+    except ImportError as exc:
+        raise ValueError("diamond-sss tune needs Optuna: pip install 'diamond-sss[tune]'") from exc
     from diamond_sss.training.config import parse_value
     from diamond_sss.tuning.objective import Objective, ObjectiveSettings
     from diamond_sss.tuning.report import write_report
@@ -78,7 +82,7 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
                                    pruner_warmup_steps=report_every + 1,
                                    heartbeat_interval=heartbeat_interval, enqueue_presets=enqueue_presets)
     optuna_study = open_study(study_settings, objective_settings.fingerprint(tune_data))
-    console = Console()
+    console = Console(soft_wrap=True)
     if not report_only:
         objective = Objective(tune_data, objective_settings, Path(out) / "trials")
         ran = run_worker(optuna_study, objective, trials, timeout=timeout,
