@@ -262,6 +262,8 @@ def test_save_load_round_trip(tmp_path):
 def test_bad_inputs_give_clear_errors(tmp_path):
     with pytest.raises(ValueError, match="space"):
         NVSConfig(space="voxel")
+    with pytest.raises(ValueError, match="prediction_type"):
+        NVSConfig(prediction_type="sample")
     with pytest.raises(ValueError, match="needs a VAE"):
         NVSModel(NVSConfig(**{**TINY, "space": "latent"}))
     with pytest.raises(FileNotFoundError, match="config.json"):

@@ -53,9 +53,10 @@ def test_sequences_hold_one_light_each_and_batches_use_distinct_objects(objects)
         assert not any(torch.equal(batch.reference_w2c[o], w) for w in batch.target_w2c[o])
 
 
-def test_training_steps_overfit_one_sample(objects):
+@pytest.mark.parametrize("prediction_type", ["epsilon", "v_prediction"])
+def test_training_steps_overfit_one_sample(objects, prediction_type):
     torch.manual_seed(0)
-    model = NVSModel(NVSConfig(**TINY, condition_dropout=0.0))
+    model = NVSModel(NVSConfig(**TINY, condition_dropout=0.0, prediction_type=prediction_type))
     batch = sample_batch(fixed_light_sequences(objects[:1], size=16), 1, 2, torch.Generator().manual_seed(1))
     optimizer = torch.optim.Adam(model.trainable_parameters(), lr=2e-3)
     losses = []
@@ -68,6 +69,26 @@ def test_training_steps_overfit_one_sample(objects):
         optimizer.step()
         losses.append(loss.item())
     assert losses[-1] < 0.2 * losses[0]
+
+
+def test_all_views_of_an_object_share_one_timestep(objects):
+    from diamond_sss.diffusion.nvs.model import make_train_scheduler
+
+    model = NVSModel(NVSConfig(**TINY))
+    scheduler = make_train_scheduler(model.config)
+    seen = []
+    add_noise = scheduler.add_noise
+
+    def spy(clean, noise, timesteps):
+        seen.append(timesteps.clone())
+        return add_noise(clean, noise, timesteps)
+
+    scheduler.add_noise = spy
+    batch = sample_batch(fixed_light_sequences(objects, size=16), 2, 3, torch.Generator().manual_seed(1))
+    model.training_loss(batch, generator=torch.Generator().manual_seed(4), scheduler=scheduler)
+    per_object = seen[0].reshape(2, 3)
+    assert (per_object == per_object[:, :1]).all()
+    assert per_object[0, 0] != per_object[1, 0]
 
 
 def test_gradient_checkpointing_gives_the_same_gradients(objects):

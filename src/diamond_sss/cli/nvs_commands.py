@@ -17,6 +17,7 @@ def finetune_nvs(
     warmup_steps: int = 100,
     image_size: int = 32,
     space: str = "pixel",
+    prediction_type: str = "epsilon",
     vae: Path | None = None,
     gradient_checkpointing: bool = True,
     checkpoint_every: int = 200,
@@ -37,6 +38,7 @@ def finetune_nvs(
         warmup_steps: linear warm-up steps.
         image_size: side of the generated images (pixels; latent space: 8x the latent side).
         space: pixel (small offline default) or latent (needs --vae).
+        prediction_type: epsilon (Free3D's objective) or v_prediction (steadier for small pixel models).
         vae: local diffusers AutoencoderKL folder for latent space.
         gradient_checkpointing: recompute activations of every ResNet/transformer block in the backward pass.
         checkpoint_every: steps between atomic checkpoints.
@@ -52,7 +54,12 @@ def finetune_nvs(
         data = [embedded_dataset(n) for n in names]
     if not data:
         raise ValueError("no fine-tuning data: pass --data or install the embedded fine-tuning objects")
-    model = NVSConfig(space=space, image_size=image_size, vae_path=None if vae is None else str(vae))
+    model = NVSConfig(
+        space=space,
+        image_size=image_size,
+        vae_path=None if vae is None else str(vae),
+        prediction_type=prediction_type,
+    )
     config = FinetuneConfig(
         steps=steps,
         objects_per_batch=objects_per_batch,

@@ -62,6 +62,10 @@ class NVSConfig:
     def __post_init__(self) -> None:
         if self.space not in ("pixel", "latent"):
             raise ValueError(f"space must be 'pixel' or 'latent', got {self.space!r}")
+        if self.prediction_type not in ("epsilon", "v_prediction"):
+            raise ValueError(
+                f"prediction_type must be 'epsilon' or 'v_prediction', got {self.prediction_type!r}"
+            )
         if self.space == "latent" and self.image_size % 8:
             raise ValueError(f"latent space needs an image size divisible by 8, got {self.image_size}")
         for name in ("block_out_channels", "down_block_types", "up_block_types", "encoder_channels"):
@@ -117,14 +121,17 @@ def make_train_scheduler(config: NVSConfig) -> DDPMScheduler:
 
 
 def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
-    """Deterministic DDIM (``eta = 0``) on the same schedule; the last step returns the clean estimate."""
+    """Deterministic DDIM (``eta = 0``) on the same schedule; the last step returns the clean estimate.
+
+    In pixel space the clean estimate is clipped to the image range ``[-1, 1]`` at every step.
+    """
     return DDIMScheduler(
         num_train_timesteps=config.num_train_timesteps,
         beta_start=config.beta_start,
         beta_end=config.beta_end,
         beta_schedule=config.beta_schedule,
         prediction_type=config.prediction_type,
-        clip_sample=False,
+        clip_sample=config.space == "pixel",
         set_alpha_to_one=True,
         steps_offset=1,
     )
