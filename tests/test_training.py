@@ -173,3 +173,23 @@ def test_cli_train_eval_render_export(capture, tmp_path, capsys):
     main(["export", "--run", str(run), "--ply", str(tmp_path / "scene.ply")])
     scene, _ = load_scene(run)
     assert import_ply(tmp_path / "scene.ply").num_gaussians == scene.gaussians.num_gaussians
+
+
+def test_unified_lattice_maps_shared_and_new_cameras(capture, tmp_path):
+    from diamond_sss.training.lattice import unify_lattices
+
+    real = OLATDataset(capture)
+    extra_root = tmp_path / "generated"
+    make_capture(extra_root, views=6, lights=3, size=16)  # the same lattice ...
+    make_capture(extra_root / "new", views=2, lights=3, size=16, camera_offset=1.1)  # ... and two new cameras
+    same = OLATDataset(extra_root)
+    new = OLATDataset(extra_root / "new")
+    union = unify_lattices([real, same.subset([5, 9]), new])
+    assert union.view_maps[0] == list(range(6)) and union.view_maps[1] == list(range(6))
+    assert union.view_maps[2] == [6, 7] and union.num_views == 8
+    assert union.light_maps[2] == [0, 1, 2] and union.light_positions.shape == (3, 3)
+    assert torch.allclose(union.viewmats[7], new.viewmats[1])
+    cfg = make_config("diamond", overrides={**TINY, "iterations": 2, "densify": False})
+    trainer = Trainer(cfg, [ImageSource(real), ImageSource(new, 0.5)], tmp_path / "run", show_progress=False)
+    trainer.run()
+    assert set(trainer.view_silhouettes) == set(range(8))

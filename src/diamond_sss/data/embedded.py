@@ -26,7 +26,7 @@ def embedded_dataset(name: str = DEMO) -> Path:
 
 
 def embedded_dataset_names() -> list[str]:
-    """Names of the embedded data sets, e.g. ``['demo', 'finetune/jade_torus', ...]``."""
+    """Names of the embedded data sets, e.g. ``['demo', 'finetune/torus_jade', ...]``."""
     root = embedded_data_root()
     if not root.is_dir():
         return []

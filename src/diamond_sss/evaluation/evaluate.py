@@ -105,5 +105,6 @@ def save_decomposition_figure(path: Path, scene: RelightableScene, dataset: OLAT
     images = [to_display(maps[name][0][0], linear=maps[name][1]) for name in DECOMPOSITION]
     radiance = to_display(render.radiance[0])
     return save_image_grid(path, [[radiance] + images[:5], images[5:]],
-                           col_labels=["render", *DECOMPOSITION[:5]],
-                           title="decomposition (second row: " + ", ".join(DECOMPOSITION[5:]) + ")")
+                           cell_labels=[["render", *DECOMPOSITION[:5]], list(DECOMPOSITION[5:])],
+                           title=f"decomposition: view {dataset.observations[index].view}, "
+                                 f"light {dataset.observations[index].light}")

@@ -28,8 +28,13 @@ def to_display(image: Tensor, *, linear: bool = True) -> np.ndarray:
 
 def save_image_grid(path: str | os.PathLike, rows: Sequence[Sequence[np.ndarray]], *,
                     row_labels: Sequence[str] | None = None, col_labels: Sequence[str] | None = None,
-                    title: str | None = None, cell_inches: float = 1.4) -> Path:
-    """Save a grid of display images (``[H,W,3]`` floats in [0,1]) with optional labels as a PNG."""
+                    cell_labels: Sequence[Sequence[str]] | None = None, title: str | None = None,
+                    cell_inches: float = 1.4) -> Path:
+    """Save a grid of display images (``[H,W,3]`` floats in [0,1]) as a PNG.
+
+    Labels: ``col_labels`` above the first row, ``row_labels`` left of each row, or ``cell_labels`` (one per
+    image) above every image.
+    """
     num_rows = len(rows)
     num_cols = max(len(r) for r in rows)
     fig, axes = plt.subplots(num_rows, num_cols, figsize=(cell_inches * num_cols, cell_inches * num_rows + 0.4),
@@ -43,7 +48,9 @@ def save_image_grid(path: str | os.PathLike, rows: Sequence[Sequence[np.ndarray]
                 spine.set_visible(False)
             if c < len(rows[r]):
                 ax.imshow(rows[r][c], interpolation="nearest")
-            if col_labels is not None and r == 0 and c < len(col_labels):
+            if cell_labels is not None and c < len(cell_labels[r]):
+                ax.set_title(cell_labels[r][c], fontsize=7)
+            elif col_labels is not None and r == 0 and c < len(col_labels):
                 ax.set_title(col_labels[c], fontsize=7)
             if row_labels is not None and c == 0 and r < len(row_labels):
                 ax.set_ylabel(row_labels[r], fontsize=7)

@@ -45,6 +45,7 @@ class TrainConfig:
     sss_lr: float = 0.001
     light_lr: float = 0.001
     light_init: float = -1.0
+    light_init_from_data: bool = True
     lr_decay_step: int = 50_000
     lr_decay_factor: float = 0.1
     # Gaussians, initialisation and densification (gsplat DefaultStrategy; densify=False keeps N fixed)

@@ -19,7 +19,7 @@ from gsplat.strategy import DefaultStrategy
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from diamond_sss.data.conventions import linear_to_srgb, scale_intrinsics
+from diamond_sss.data.conventions import camera_centers, linear_to_srgb, scale_intrinsics
 from diamond_sss.data.dataset import OLATDataset, seeded_epoch_indices
 from diamond_sss.data.images import resize_area
 from diamond_sss.gaussians.init import initial_points
@@ -32,6 +32,7 @@ from diamond_sss.shading.raytrace import raytraced_visibility
 from diamond_sss.shading.sh import visibility_from_sh
 from diamond_sss.training.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from diamond_sss.training.config import TrainConfig
+from diamond_sss.training.lattice import unify_lattices
 from diamond_sss.training.objective import TargetBatch, image_objective
 from diamond_sss.training.schedules import exponential_lr, step_decay
 from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
@@ -114,11 +115,13 @@ class Trainer:
             torch.set_num_threads(cfg.cpu_threads)
         self.index = [(s, i) for s, source in enumerate(sources) for i in range(len(source.dataset))]
         self.bounds = self.lattice.bounds
-        self.viewmats = self.lattice.viewmats.to(self.device)
-        self.Ks = self.lattice.intrinsics.to(self.device)
-        self.light_positions = self.lattice.light_positions.to(self.device)
-        self.light_intensities = self.lattice.light_intensities.to(self.device)
-        self.width, self.height = self.lattice.width, self.lattice.height
+        self.union = unify_lattices([source.dataset for source in sources])
+        self.viewmats = self.union.viewmats.to(self.device)
+        self.Ks = self.union.Ks.to(self.device)
+        self.light_positions = self.union.light_positions.to(self.device)
+        self.light_intensities = self.union.light_intensities.to(self.device)
+        self.camera_centers = camera_centers(self.union.viewmats)
+        self.width, self.height = self.union.width, self.union.height
         self.view_silhouettes = self._view_silhouettes()
         self.lpips = load_lpips(cfg.lpips_weights or None) if cfg.lambda_lpips > 0 else None
         if self.lpips is not None:
@@ -137,12 +140,12 @@ class Trainer:
 
     # ------------------------------------------------------------------ set-up
     def _view_silhouettes(self) -> dict[int, Tensor]:
-        """Ground-truth mask of every view that has an image in any source (light-independent)."""
+        """Mask of every (unified) view that has an image in any source (light-independent); real first."""
         masks: dict[int, Tensor] = {}
-        for source in self.sources:
+        for source, view_map in zip(self.sources, self.union.view_maps):
             for index, obs in enumerate(source.dataset.observations):
-                if obs.view not in masks:
-                    masks[obs.view] = source.dataset.load(index).mask[..., 0].to(self.device)
+                if view_map[obs.view] not in masks:
+                    masks[view_map[obs.view]] = source.dataset.load(index).mask[..., 0].to(self.device)
         return masks
 
     def build_scene(self) -> RelightableScene:
@@ -150,7 +153,7 @@ class Trainer:
         cfg = self.cfg
         torch.manual_seed(cfg.seed)
         generator = torch.Generator().manual_seed(cfg.seed)
-        views = sorted(self.view_silhouettes)
+        views = sorted({obs.view for obs in self.lattice.observations})
         use_ply = cfg.init in ("auto", "ply")
         use_hull = cfg.init in ("auto", "hull")
         ply = self.lattice.root / "points3d.ply"
@@ -166,9 +169,30 @@ class Trainer:
         )
         self.init_source = points.source
         model = GaussianModel.from_points(points.points, points.colors, points.normals, generator=generator)
-        return RelightableScene(model, sss_width=cfg.sss_width, light_init=cfg.light_init,
+        light_init = self.calibrated_light_init() if cfg.light_init_from_data else cfg.light_init
+        return RelightableScene(model, sss_width=cfg.sss_width, light_init=light_init,
                                 scene_center=self.bounds.center, scene_radius=self.bounds.radius,
                                 mixed_precision=cfg.mixed_precision).to(self.device)
+
+    def calibrated_light_init(self, max_images: int = 64) -> float:
+        """``log`` of a global light scale matched to the capture's units (Tab. 3's ``light_init`` = -1 is
+        tied to SSS-3DGS's data): ``log(2 q99 / mean(I_light))``, ``q99`` the 99th percentile of the brightest
+        channel over foreground pixels of up to ``max_images`` training images. At that scale the sigmoid
+        residual ``R I`` can reach twice the brightest observed radiance from the first step.
+        """
+        dataset = self.sources[0].dataset
+        count = min(max_images, len(dataset))
+        picks = torch.linspace(0, len(dataset) - 1, count).round().long().tolist()
+        values, intensities = [], []
+        for index in picks:
+            sample = dataset.load(index)
+            values.append(sample.rgb.amax(dim=-1)[sample.mask[..., 0] > 0.5])
+            intensities.append(dataset.light_intensities[sample.light].mean())
+        foreground = torch.cat(values)
+        if foreground.numel() == 0:
+            return self.cfg.light_init
+        q99 = float(torch.quantile(foreground[:1_000_000], 0.99))
+        return float(torch.log(torch.tensor(2.0 * max(q99, 1e-4)) / torch.stack(intensities).mean().clamp_min(1e-8)))
 
     def build_optimizers(self, scene: RelightableScene) -> dict[str, torch.optim.Optimizer]:
         """One Adam per Gaussian parameter (the layout gsplat's strategies need), the MLP and the light."""
@@ -210,8 +234,8 @@ class Trainer:
             rgbs.append(sample.rgb)
             masks.append(sample.mask)
             weights.append(source.weight)
-            views.append(sample.view)
-            lights.append(sample.light)
+            views.append(self.union.view_maps[source_index][sample.view])
+            lights.append(self.union.light_maps[source_index][sample.light])
         rgb = torch.stack(rgbs).to(self.device)
         mask = torch.stack(masks).to(self.device)
         if cfg.random_background:
@@ -243,9 +267,9 @@ class Trainer:
         """Silhouette and depth consistency between batch views (sources) and nearby lattice views."""
         cfg = self.cfg
         generator = step_generator(cfg.seed, step, 2)
-        candidates = torch.arange(self.lattice.num_views) if cfg.mv_include_unobserved_views else torch.tensor(
+        candidates = torch.arange(self.union.num_views) if cfg.mv_include_unobserved_views else torch.tensor(
             sorted(self.view_silhouettes))
-        centers = self.lattice.camera_centers
+        centers = self.camera_centers
         sources, targets = [], []
         for _ in range(cfg.mv_pairs_per_step):
             b = int(torch.randint(len(self._batch_views), (1,), generator=generator))
