@@ -226,3 +226,25 @@ def test_empty_mask_is_a_warning(tmp_path):
         ds.load(ds.observation_index(1, 0))
     messages = [str(w.message) for w in caught]
     assert len(messages) == 1 and "v001_l000.png: the mask is empty" in messages[0]
+
+
+def test_declared_lattice_keeps_cameras_and_lights_without_images(tmp_path):
+    truth = make_capture(tmp_path, views=4, lights=3, size=8)
+    full = OLATDataset(tmp_path)
+    meta = json.loads((tmp_path / "transforms_train.json").read_text())
+    cameras = [{"transform_matrix": c2w.tolist()} for c2w in truth["c2w"]]
+    lights = [{"position": p.tolist(), "intensity": [1.0, 1.0, 1.0]} for p in truth["lights"]]
+    frame = meta["frames"][2]
+    sparse = {"camera_angle_x": meta["camera_angle_x"], "cameras": cameras, "lights": lights,
+              "frames": [{**frame, "file_paths": frame["file_paths"][2:], "light_positions": frame["light_positions"][2:],
+                          "light_intensities": frame["light_intensities"][2:]}]}
+    (tmp_path / "transforms_sparse.json").write_text(json.dumps(sparse))
+    ds = OLATDataset(tmp_path, "sparse")
+    assert (ds.num_views, ds.num_lights, len(ds)) == (4, 3, 1)
+    assert (ds.observations[0].view, ds.observations[0].light) == (2, 2)
+    assert torch.allclose(ds.viewmats, full.viewmats) and torch.allclose(ds.light_positions, full.light_positions)
+    assert ds.cameras[0].frame == -1 and (ds.cameras[0].width, ds.cameras[0].height) == (8, 8)
+    sparse["lights"][1] = {"intensity": [1, 1, 1]}
+    (tmp_path / "transforms_sparse.json").write_text(json.dumps(sparse))
+    with pytest.raises(DataError, match=r"key 'lights': lights\[1\]: expected an object with 'position'"):
+        OLATDataset(tmp_path, "sparse")

@@ -28,7 +28,13 @@ from diamond_sss.data.conventions import (
 )
 from diamond_sss.data.errors import DataError, data_error
 from diamond_sss.data.images import composite_background, load_rgba, resize_area
-from diamond_sss.data.transforms import ImageRecord, parse_transforms, transforms_path
+from diamond_sss.data.transforms import (
+    DeclaredCamera,
+    ImageRecord,
+    ParsedTransforms,
+    parse_transforms,
+    transforms_path,
+)
 
 
 @dataclass(frozen=True)
@@ -131,9 +137,10 @@ class OLATDataset:
         self.downscale = float(downscale)
         self.background = background
         self.json_path = transforms_path(self.root, split)
-        records = parse_transforms(self.json_path)
-        self.cameras, view_of_record = _deduplicate_cameras(records, self.downscale)
-        self.lights, light_of_record = _deduplicate_lights(records, light_tolerance)
+        parsed = parse_transforms(self.json_path)
+        records = parsed.records
+        self.cameras, view_of_record = _deduplicate_cameras(parsed, self.downscale)
+        self.lights, light_of_record = _deduplicate_lights(parsed, light_tolerance)
         self.observations = _observations(self.json_path, records, view_of_record, light_of_record)
         self._geometry_maps = {view_of_record[i]: (r.depth_path, r.normal_path) for i, r in enumerate(records)}
         self._cache = _ImageCache(cache_images)
@@ -344,9 +351,9 @@ def scene_bounds(viewmats: Tensor, Ks: Tensor, width: int, height: int) -> Scene
     return SceneBounds(center=center.float(), radius=radius, near=near, far=far)
 
 
-def _camera_matrix(record: ImageRecord, downscale: float) -> tuple[Tensor, Tensor, int, int]:
+def _camera_matrix(record: ImageRecord | DeclaredCamera, width: int, height: int,
+                   downscale: float) -> tuple[Tensor, Tensor, int, int]:
     intr = record.intrinsics
-    width, height = record.width, record.height
     if intr.fx is not None:
         cx = intr.cx if intr.cx is not None else 0.5 * width
         cy = intr.cy if intr.cy is not None else 0.5 * height
@@ -361,40 +368,48 @@ def _camera_matrix(record: ImageRecord, downscale: float) -> tuple[Tensor, Tenso
     return w2c, K, new_width, new_height
 
 
-def _deduplicate_cameras(records: list[ImageRecord], downscale: float) -> tuple[list[Camera], list[int]]:
+def _deduplicate_cameras(parsed: ParsedTransforms, downscale: float) -> tuple[list[Camera], list[int]]:
+    """Declared cameras first (``frame = -1``), then each new camera of the images; image -> view index."""
     cameras: list[Camera] = []
     keys: dict[tuple, int] = {}
-    view_of_record = []
-    for record in records:
-        intr = record.intrinsics
-        key = (tuple(np.round(record.c2w, 6).ravel().tolist()), intr)
+    records = parsed.records
+    entries: list[tuple[ImageRecord | DeclaredCamera, int, int, int]] = [
+        (cam, cam.width or records[0].width, cam.height or records[0].height, -1) for cam in parsed.cameras
+    ] + [(record, record.width, record.height, record.frame) for record in records]
+    view_of_entry = []
+    for entry, width, height, frame in entries:
+        key = (tuple(np.round(entry.c2w, 6).ravel().tolist()), entry.intrinsics)
         if key not in keys:
-            w2c, K, width, height = _camera_matrix(record, downscale)
+            w2c, K, new_width, new_height = _camera_matrix(entry, width, height, downscale)
             keys[key] = len(cameras)
-            cameras.append(Camera(w2c=w2c, K=K, width=width, height=height, frame=record.frame))
-        view_of_record.append(keys[key])
-    return cameras, view_of_record
+            cameras.append(Camera(w2c=w2c, K=K, width=new_width, height=new_height, frame=frame))
+        view_of_entry.append(keys[key])
+    return cameras, view_of_entry[len(parsed.cameras):]
 
 
-def _deduplicate_lights(records: list[ImageRecord], tolerance: float) -> tuple[list[Light], list[int]]:
-    positions = np.stack([r.light_position for r in records])
+def _deduplicate_lights(parsed: ParsedTransforms, tolerance: float) -> tuple[list[Light], list[int]]:
+    """Declared lights first, then each new light of the images (within ``tolerance`` of the rig radius)."""
+    entries = [(light.position, light.intensity) for light in parsed.lights] + [
+        (r.light_position, r.light_intensity) for r in parsed.records]
+    positions = np.stack([position for position, _ in entries])
     scale = max(float(np.linalg.norm(positions, axis=-1).max()), 1e-6)
     unique_pos: list[np.ndarray] = []
     unique_rgb: list[np.ndarray] = []
-    light_of_record = []
-    for record in records:
+    light_of_entry = []
+    for position, intensity in entries:
         match = -1
         if unique_pos:
-            dist = np.linalg.norm(np.stack(unique_pos) - record.light_position, axis=-1)
+            dist = np.linalg.norm(np.stack(unique_pos) - position, axis=-1)
             for candidate in np.flatnonzero(dist <= tolerance * scale):
-                if np.allclose(unique_rgb[candidate], record.light_intensity, rtol=1e-3, atol=1e-6):
+                if np.allclose(unique_rgb[candidate], intensity, rtol=1e-3, atol=1e-6):
                     match = int(candidate)
                     break
         if match < 0:
             match = len(unique_pos)
-            unique_pos.append(record.light_position)
-            unique_rgb.append(record.light_intensity)
-        light_of_record.append(match)
+            unique_pos.append(position)
+            unique_rgb.append(intensity)
+        light_of_entry.append(match)
+    light_of_record = light_of_entry[len(parsed.lights):]
     lights = [Light(position=torch.tensor(p, dtype=torch.float32), intensity=torch.tensor(c, dtype=torch.float32))
               for p, c in zip(unique_pos, unique_rgb)]
     return lights, light_of_record

@@ -74,8 +74,43 @@ def available_splits(root: Path) -> list[str]:
     return sorted(p.stem[len("transforms_"):] for p in Path(root).glob("transforms_*.json"))
 
 
-def parse_transforms(path: Path) -> list[ImageRecord]:
-    """Read a transforms JSON file into one :class:`ImageRecord` per image (both variants)."""
+@dataclass(frozen=True)
+class DeclaredCamera:
+    """A lattice camera listed under the top-level ``cameras`` key (it may have no image in this file)."""
+
+    index: int
+    c2w: np.ndarray
+    intrinsics: Intrinsics
+    width: int | None
+    height: int | None
+
+
+@dataclass(frozen=True)
+class DeclaredLight:
+    """A lattice light listed under the top-level ``lights`` key (it may have no image in this file)."""
+
+    index: int
+    position: np.ndarray
+    intensity: np.ndarray
+
+
+@dataclass(frozen=True)
+class ParsedTransforms:
+    """Every image of a transforms file, plus the lattice cameras and lights it declares up front."""
+
+    records: list[ImageRecord]
+    cameras: list[DeclaredCamera]
+    lights: list[DeclaredLight]
+
+
+def parse_transforms(path: Path) -> ParsedTransforms:
+    """Read a transforms JSON file into one :class:`ImageRecord` per image (both variants).
+
+    Optional top-level ``cameras`` (``[{"transform_matrix": ..., "fl_x"/...: ...}]``) and ``lights``
+    (``[{"position": [x,y,z], "intensity": [r,g,b]}]``) declare the capture's full lattice, including cameras
+    and lights with no image in this file (e.g. generated data, or the novel views of a regime); they take
+    the first lattice indices, in order.
+    """
     try:
         meta = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
@@ -91,7 +126,41 @@ def parse_transforms(path: Path) -> list[ImageRecord]:
         if not isinstance(frame, dict):
             raise data_error(path, "expected a JSON object", frame=index)
         records.extend(_parse_frame(path, root, meta, frame, index))
-    return records
+    return ParsedTransforms(records, _declared_cameras(path, meta), _declared_lights(path, meta))
+
+
+def _declared_cameras(path: Path, meta: dict) -> list[DeclaredCamera]:
+    entries = meta.get("cameras", [])
+    if not isinstance(entries, list):
+        raise data_error(path, "expected a list of camera objects", key="cameras")
+    cameras = []
+    for index, entry in enumerate(entries):
+        if not isinstance(entry, dict):
+            raise data_error(path, f"cameras[{index}]: expected a JSON object", key="cameras")
+        try:
+            c2w = _matrix(path, entry, index)
+            intrinsics = _intrinsics(path, meta, entry, index)
+        except DataError as exc:
+            raise DataError(str(exc).replace(f"frame {index}", f"cameras[{index}]")) from exc
+        width = entry.get("w", meta.get("w"))
+        height = entry.get("h", meta.get("h"))
+        cameras.append(DeclaredCamera(index, c2w, intrinsics, None if width is None else int(width),
+                                      None if height is None else int(height)))
+    return cameras
+
+
+def _declared_lights(path: Path, meta: dict) -> list[DeclaredLight]:
+    entries = meta.get("lights", [])
+    if not isinstance(entries, list):
+        raise data_error(path, "expected a list of light objects", key="lights")
+    lights = []
+    for index, entry in enumerate(entries):
+        if not isinstance(entry, dict) or "position" not in entry:
+            raise data_error(path, f"lights[{index}]: expected an object with 'position'", key="lights")
+        lights.append(DeclaredLight(index, _vector(path, entry["position"], index, f"lights[{index}].position"),
+                                    _intensity(path, entry.get("intensity", 1.0), index,
+                                               f"lights[{index}].intensity")))
+    return lights
 
 
 def _parse_frame(path: Path, root: Path, meta: dict, frame: dict, index: int) -> list[ImageRecord]:
