@@ -105,3 +105,22 @@ def test_resume_continues_exactly(views, tmp_path):
     assert sorted(p.name for p in (tmp_path / "resumed" / "checkpoints").iterdir()) == ["step_00000002",
                                                                                          "step_00000003"]
     assert json.loads((tmp_path / "resumed" / "selection.json").read_text())["images"]
+
+
+def test_lambertian_baseline_recovers_a_lambertian_image():
+    from diamond_sss.data.conventions import intrinsics_from_fov
+    from diamond_sss.diffusion.relight.baselines import lambertian_relight, lambertian_shading
+
+    # A plane z = 0 seen from z = 3 (camera looks along -z in world: OpenCV w2c flips y and z).
+    w2c = torch.tensor([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 3], [0, 0, 0, 1]])
+    K = intrinsics_from_fov(0.6, 16, 16)
+    depth = torch.full((16, 16, 1), 3.0)
+    normals = torch.tensor([0.0, 0.0, 1.0]).expand(16, 16, 3)
+    mask = torch.ones(16, 16, 1)
+    lights = torch.tensor([[0.0, 0.0, 2.0], [1.0, 0.5, 1.5]])
+    albedo = torch.tensor([0.8, 0.5, 0.2])
+    images = [albedo * lambertian_shading(depth, normals, w2c, K, p) for p in lights]
+    # Head-on light at distance 2 from the centre pixel: S = 1 / 4.
+    assert float(lambertian_shading(depth, normals, w2c, K, lights[0])[8, 8, 0]) == pytest.approx(0.25, rel=0.02)
+    relit = lambertian_relight(images[0], mask, depth, normals, w2c, K, lights[0], lights[1:])
+    assert torch.allclose(relit[0], images[1].clamp(0, 1), atol=1e-5)
