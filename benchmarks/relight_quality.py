@@ -45,43 +45,75 @@ def evaluate_object(root: Path, model, steps: int, seed: int, cache: OutputCache
         source = dataset.load(dataset.observation_index(view, source_light))
         depth, normals = dataset.load_geometry_maps(view)
         predictions = {
-            "model": [r.rgb for r in relight_view(model, dataset, view, source_light, targets, geometry, cache,
-                                                  num_steps=steps, seed=seed)],
+            "model": [
+                r.rgb
+                for r in relight_view(
+                    model, dataset, view, source_light, targets, geometry, cache, num_steps=steps, seed=seed
+                )
+            ],
             "source": [source.rgb] * len(targets),
-            "lambertian": list(lambertian_relight(source.rgb, source.mask, depth, normals, dataset.viewmats[view],
-                                                  dataset.intrinsics[view], dataset.light_positions[source_light],
-                                                  dataset.light_positions[targets])),
+            "lambertian": list(
+                lambertian_relight(
+                    source.rgb,
+                    source.mask,
+                    depth,
+                    normals,
+                    dataset.viewmats[view],
+                    dataset.intrinsics[view],
+                    dataset.light_positions[source_light],
+                    dataset.light_positions[targets],
+                )
+            ),
         }
         for i, light in enumerate(targets):
             truth = dataset.load(dataset.observation_index(view, light))
             for method in METHODS:
                 metrics = image_metrics(predictions[method][i], truth.rgb, source.mask, truth.mask)
-                rows.append({"object": root.name, "view": view, "source_light": source_light, "light": light,
-                             "method": method, "psnr": metrics.psnr, "ssim": metrics.ssim})
+                rows.append(
+                    {
+                        "object": root.name,
+                        "view": view,
+                        "source_light": source_light,
+                        "light": light,
+                        "method": method,
+                        "psnr": metrics.psnr,
+                        "ssim": metrics.ssim,
+                    }
+                )
     return rows
 
 
 def summarize(rows: list[dict]) -> dict:
     """Mean PSNR / SSIM per method, overall and per object, and the model's margin over each baseline."""
+
     def mean(values: list[float]) -> float:
         return sum(values) / len(values)
 
     summary = {"images": len(rows) // len(METHODS), "overall": {}, "per_object": {}}
     for method in METHODS:
         chosen = [r for r in rows if r["method"] == method]
-        summary["overall"][method] = {"psnr": mean([r["psnr"] for r in chosen]), "ssim": mean([r["ssim"] for r in chosen])}
+        summary["overall"][method] = {
+            "psnr": mean([r["psnr"] for r in chosen]),
+            "ssim": mean([r["ssim"] for r in chosen]),
+        }
         for name in sorted({r["object"] for r in rows}):
             mine = [r for r in chosen if r["object"] == name]
-            summary["per_object"].setdefault(name, {})[method] = {"psnr": mean([r["psnr"] for r in mine]),
-                                                                  "ssim": mean([r["ssim"] for r in mine])}
+            summary["per_object"].setdefault(name, {})[method] = {
+                "psnr": mean([r["psnr"] for r in mine]),
+                "ssim": mean([r["ssim"] for r in mine]),
+            }
     overall = summary["overall"]
-    summary["margin_db"] = {b: overall["model"]["psnr"] - overall[b]["psnr"] for b in ("source", "lambertian")}
+    summary["margin_db"] = {
+        b: overall["model"]["psnr"] - overall[b]["psnr"] for b in ("source", "lambertian")
+    }
     summary["beats_baselines_by_2db"] = all(m >= 2.0 for m in summary["margin_db"].values())
     return summary
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--data", type=Path, nargs="+", required=True, help="held-out object folders")
     parser.add_argument("--model", type=Path, default=None, help="model folder (default: the shipped model)")
     parser.add_argument("--steps", type=int, default=20, help="DDIM steps")
@@ -90,17 +122,28 @@ def main() -> None:
     args = parser.parse_args()
     model = load_model(args.model).eval()
     with tempfile.TemporaryDirectory() as tmp:
-        rows = [row for root in args.data for row in evaluate_object(root, model, args.steps, args.seed,
-                                                                       OutputCache(tmp))]
+        rows = [
+            row
+            for root in args.data
+            for row in evaluate_object(root, model, args.steps, args.seed, OutputCache(tmp))
+        ]
     summary = summarize(rows)
-    summary["settings"] = {"model": str(args.model or "shipped"), "steps": args.steps, "seed": args.seed,
-                           "objects": [str(p) for p in args.data]}
+    summary["settings"] = {
+        "model": str(args.model or "shipped"),
+        "steps": args.steps,
+        "seed": args.seed,
+        "objects": [str(p) for p in args.data],
+    }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "relight_quality.json").write_text(json.dumps({"summary": summary, "rows": rows}, indent=2) + "\n")
+    (args.out / "relight_quality.json").write_text(
+        json.dumps({"summary": summary, "rows": rows}, indent=2) + "\n"
+    )
     print(f"{'method':<12}{'PSNR':>8}{'SSIM':>8}")
     for method, values in summary["overall"].items():
         print(f"{method:<12}{values['psnr']:>8.2f}{values['ssim']:>8.3f}")
-    print(f"margin over baselines (dB): {summary['margin_db']}; beats both by 2 dB: {summary['beats_baselines_by_2db']}")
+    print(
+        f"margin over baselines (dB): {summary['margin_db']}; beats both by 2 dB: {summary['beats_baselines_by_2db']}"
+    )
 
 
 if __name__ == "__main__":

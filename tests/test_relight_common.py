@@ -15,7 +15,9 @@ from diamond_sss.diffusion.common.sampling import SchedulerConfig, ddim_sample, 
 def test_cache_entries_are_keyed_and_atomic(tmp_path):
     cache = OutputCache(tmp_path)
     key = cache.key({"model": "abc", "input": [1, 2]})
-    assert key == cache.key({"input": [1, 2], "model": "abc"}) and key != cache.key({"model": "abd", "input": [1, 2]})
+    assert key == cache.key({"input": [1, 2], "model": "abc"}) and key != cache.key(
+        {"model": "abd", "input": [1, 2]}
+    )
     assert cache.get(key) is None
 
     def failing(folder):
@@ -26,7 +28,9 @@ def test_cache_entries_are_keyed_and_atomic(tmp_path):
         cache.put(key, failing)
     assert cache.get(key) is None and not list(tmp_path.rglob("*.tmp"))
     calls = []
-    entry, hit = cache.get_or_create(key, lambda folder: (calls.append(1), (folder / "a.txt").write_text("1")))
+    entry, hit = cache.get_or_create(
+        key, lambda folder: (calls.append(1), (folder / "a.txt").write_text("1"))
+    )
     assert not hit and (entry / "a.txt").read_text() == "1"
     again, hit = cache.get_or_create(key, lambda folder: calls.append(1))
     assert hit and again == entry and calls == [1]
@@ -60,9 +64,12 @@ def test_ddim_with_an_exact_denoiser_recovers_the_target():
     out = ddim_sample(denoise, (1, 3, 2, 2), scheduler, 10, torch.Generator().manual_seed(0))
     assert torch.allclose(out, x0, atol=1e-3)
     noise = torch.randn(1, 3, 2, 2, generator=torch.Generator().manual_seed(0))
-    assert torch.equal(ddim_sample(lambda x, t: torch.zeros_like(x), (1, 3, 2, 2), scheduler, 3, noise=noise),
-                       ddim_sample(lambda x, t: torch.zeros_like(x), (1, 3, 2, 2), scheduler, 3,
-                                   torch.Generator().manual_seed(0)))
+    assert torch.equal(
+        ddim_sample(lambda x, t: torch.zeros_like(x), (1, 3, 2, 2), scheduler, 3, noise=noise),
+        ddim_sample(
+            lambda x, t: torch.zeros_like(x), (1, 3, 2, 2), scheduler, 3, torch.Generator().manual_seed(0)
+        ),
+    )
     with pytest.raises(ValueError, match="num_steps"):
         ddim_sample(denoise, (1, 3, 2, 2), scheduler, 0)
 

@@ -6,6 +6,7 @@ import json
 
 import pytest
 import torch
+from test_relight_model import tiny_model
 
 from diamond_sss.cli.relight_commands import relight
 from diamond_sss.data.dataset import OLATDataset
@@ -14,7 +15,6 @@ from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.geometry import StoredMapsGeometry
 from diamond_sss.diffusion.geometry.base import GeometryError
 from diamond_sss.diffusion.relight.inference import load_model, relight_view
-from test_relight_model import tiny_model
 
 
 @pytest.fixture(scope="module")
@@ -31,25 +31,48 @@ def setup(tmp_path_factory):
 def test_cache_misses_then_hits(setup, tmp_path):
     _, model, dataset, view, lights = setup
     cache = OutputCache(tmp_path / "cache")
-    first = relight_view(model, dataset, view, lights[0], lights[1:3], StoredMapsGeometry(), cache, num_steps=2)
+    first = relight_view(
+        model, dataset, view, lights[0], lights[1:3], StoredMapsGeometry(), cache, num_steps=2
+    )
     assert [r.cached for r in first] == [False, False]
-    again = relight_view(model, dataset, view, lights[0], lights[1:3], StoredMapsGeometry(), cache, num_steps=2)
+    again = relight_view(
+        model, dataset, view, lights[0], lights[1:3], StoredMapsGeometry(), cache, num_steps=2
+    )
     assert [r.cached for r in again] == [True, True]
     assert all(torch.equal(a.rgb, b.rgb) for a, b in zip(first, again))
     # A single light, generated alone, equals its batched result up to rounding (per-light noise).
-    alone = relight_view(model, dataset, view, lights[0], [lights[2]], StoredMapsGeometry(), cache, num_steps=2,
-                         seed=0)
+    alone = relight_view(
+        model, dataset, view, lights[0], [lights[2]], StoredMapsGeometry(), cache, num_steps=2, seed=0
+    )
     assert alone[0].cached
-    fresh = relight_view(model, dataset, view, lights[0], [lights[2]], StoredMapsGeometry(),
-                         OutputCache(tmp_path / "other"), num_steps=2)
+    fresh = relight_view(
+        model,
+        dataset,
+        view,
+        lights[0],
+        [lights[2]],
+        StoredMapsGeometry(),
+        OutputCache(tmp_path / "other"),
+        num_steps=2,
+    )
     assert float((fresh[0].rgb - first[1].rgb).abs().max()) < 0.01
     # Another seed, step count or model is a miss.
-    assert not relight_view(model, dataset, view, lights[0], [lights[1]], StoredMapsGeometry(), cache,
-                            num_steps=2, seed=1)[0].cached
-    assert not relight_view(model, dataset, view, lights[0], [lights[1]], StoredMapsGeometry(), cache,
-                            num_steps=3)[0].cached
-    assert not relight_view(tiny_model(seed=9).eval(), dataset, view, lights[0], [lights[1]], StoredMapsGeometry(),
-                            cache, num_steps=2)[0].cached
+    assert not relight_view(
+        model, dataset, view, lights[0], [lights[1]], StoredMapsGeometry(), cache, num_steps=2, seed=1
+    )[0].cached
+    assert not relight_view(
+        model, dataset, view, lights[0], [lights[1]], StoredMapsGeometry(), cache, num_steps=3
+    )[0].cached
+    assert not relight_view(
+        tiny_model(seed=9).eval(),
+        dataset,
+        view,
+        lights[0],
+        [lights[1]],
+        StoredMapsGeometry(),
+        cache,
+        num_steps=2,
+    )[0].cached
     assert not list(cache.root.rglob("*.tmp"))
     mask = first[0].mask[..., 0] > 1e-3
     assert float(first[0].rgb[~mask].abs().max()) == 0.0
@@ -58,8 +81,17 @@ def test_cache_misses_then_hits(setup, tmp_path):
 def test_relight_command_writes_manifest(setup, tmp_path):
     root, _, dataset, view, lights = setup
     targets = ",".join(str(light) for light in lights[1:3])
-    relight(dataset.root, view, lights[0], targets, "maps", tmp_path / "out", model=root / "model", steps=2,
-            cache=tmp_path / "cache")
+    relight(
+        dataset.root,
+        view,
+        lights[0],
+        targets,
+        "maps",
+        tmp_path / "out",
+        model=root / "model",
+        steps=2,
+        cache=tmp_path / "cache",
+    )
     manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
     assert [(m["view"], m["light"]) for m in manifest] == [(view, light) for light in lights[1:3]]
     for item in manifest:
@@ -72,12 +104,22 @@ def test_clear_errors(setup, tmp_path):
     cache = OutputCache(tmp_path / "cache")
     missing_light = next(light for light in range(dataset.num_lights) if light not in lights)
     with pytest.raises(KeyError, match=f"no source image of view {view} under light {missing_light}"):
-        relight_view(model, dataset, view, missing_light, lights[:1], StoredMapsGeometry(), cache, num_steps=1)
+        relight_view(
+            model, dataset, view, missing_light, lights[:1], StoredMapsGeometry(), cache, num_steps=1
+        )
     with pytest.raises(ValueError, match="light 999 out of range"):
         relight_view(model, dataset, view, lights[0], [999], StoredMapsGeometry(), cache, num_steps=1)
     with pytest.raises(FileNotFoundError, match="relighting model not found"):
         load_model(tmp_path / "nothing")
     with pytest.raises(GeometryError, match="not usable"):
-        relight(dataset.root, view, lights[0], "1", str(tmp_path / "no_run"), tmp_path / "out", model=root / "model")
+        relight(
+            dataset.root,
+            view,
+            lights[0],
+            "1",
+            str(tmp_path / "no_run"),
+            tmp_path / "out",
+            model=root / "model",
+        )
     with pytest.raises(ValueError, match="comma-separated"):
         relight(dataset.root, view, lights[0], "a,b", "maps", tmp_path / "out", model=root / "model")

@@ -10,15 +10,21 @@ import torch
 from diamond_sss.data.conventions import look_at_opengl_c2w, opengl_c2w_to_opencv_w2c
 from diamond_sss.diffusion.common.sampling import SchedulerConfig, make_ddpm_scheduler
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
-from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, image_to_model, model_to_image
+from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 
 
 def tiny_config(**overrides) -> RelightModelConfig:
-    base = dict(resolution=16, block_out_channels=(8, 16), norm_num_groups=4, cross_attention_dim=8,
-                attention_head_dim=4, light_tokens=2)
+    base = {
+        "resolution": 16,
+        "block_out_channels": (8, 16),
+        "norm_num_groups": 4,
+        "cross_attention_dim": 8,
+        "attention_head_dim": 4,
+        "light_tokens": 2,
+    }
     return RelightModelConfig(**{**base, **overrides})
 
 
@@ -28,8 +34,12 @@ def tiny_model(seed: int = 0, **overrides) -> RelightDiffusion:
 
 def random_inputs(batch: int = 2, size: int = 16, seed: int = 0):
     g = torch.Generator().manual_seed(seed)
-    return (torch.randn(batch, 3, size, size, generator=g), torch.randint(0, 1000, (batch,), generator=g),
-            torch.rand(batch, 8, size, size, generator=g) * 2 - 1, torch.randn(batch, 10, generator=g))
+    return (
+        torch.randn(batch, 3, size, size, generator=g),
+        torch.randint(0, 1000, (batch,), generator=g),
+        torch.rand(batch, 8, size, size, generator=g) * 2 - 1,
+        torch.randn(batch, 10, generator=g),
+    )
 
 
 def camera_w2c(eye):
@@ -49,7 +59,9 @@ def test_light_code_closed_form():
     assert right[3] == pytest.approx(-c1, abs=1e-5) and right[8] == pytest.approx(0.5462742, abs=1e-5)
     assert right[9] == pytest.approx(3.0)
     # Orthonormality of the 9 bases: a quadrature over many directions gives the identity.
-    dirs = torch.nn.functional.normalize(torch.randn(200_000, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    dirs = torch.nn.functional.normalize(
+        torch.randn(200_000, 3, generator=torch.Generator().manual_seed(0)), dim=-1
+    )
     codes = light_code(dirs * 3.0, torch.eye(4).expand(len(dirs), 4, 4), torch.zeros(3), 1.0)[:, :9]
     gram = codes.T @ codes * (4 * math.pi / len(dirs))
     assert torch.allclose(gram, torch.eye(9), atol=0.03)
@@ -121,8 +133,13 @@ def test_bad_inputs_have_clear_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="not a diffusers Stable Diffusion folder"):
         RelightDiffusion.from_pretrained_sd(tmp_path)
     with pytest.raises(ValueError, match="must have shape \\[B,H,W,3\\]"):
-        conditioning_image(torch.zeros(1, 8, 8, 4), torch.zeros(1, 8, 8, 1), torch.zeros(1, 8, 8, 3),
-                           torch.zeros(1, 8, 8, 1), 8)
+        conditioning_image(
+            torch.zeros(1, 8, 8, 4),
+            torch.zeros(1, 8, 8, 1),
+            torch.zeros(1, 8, 8, 3),
+            torch.zeros(1, 8, 8, 1),
+            8,
+        )
     with pytest.raises(ValueError, match="resolution"):
         tiny_config(resolution=15)
 
@@ -142,14 +159,28 @@ def test_from_local_stable_diffusion_folder(tmp_path):
     from diffusers import AutoencoderKL, UNet2DConditionModel
 
     torch.manual_seed(0)
-    UNet2DConditionModel(sample_size=8, in_channels=4, out_channels=4, block_out_channels=(8, 16),
-                         down_block_types=("DownBlock2D", "CrossAttnDownBlock2D"),
-                         up_block_types=("CrossAttnUpBlock2D", "UpBlock2D"), layers_per_block=1,
-                         cross_attention_dim=12, norm_num_groups=4, attention_head_dim=4
-                         ).save_pretrained(tmp_path / "sd" / "unet")
-    AutoencoderKL(in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(8, 8),
-                  down_block_types=("DownEncoderBlock2D",) * 2, up_block_types=("UpDecoderBlock2D",) * 2,
-                  norm_num_groups=4, layers_per_block=1).save_pretrained(tmp_path / "sd" / "vae")
+    UNet2DConditionModel(
+        sample_size=8,
+        in_channels=4,
+        out_channels=4,
+        block_out_channels=(8, 16),
+        down_block_types=("DownBlock2D", "CrossAttnDownBlock2D"),
+        up_block_types=("CrossAttnUpBlock2D", "UpBlock2D"),
+        layers_per_block=1,
+        cross_attention_dim=12,
+        norm_num_groups=4,
+        attention_head_dim=4,
+    ).save_pretrained(tmp_path / "sd" / "unet")
+    AutoencoderKL(
+        in_channels=3,
+        out_channels=3,
+        latent_channels=4,
+        block_out_channels=(8, 8),
+        down_block_types=("DownEncoderBlock2D",) * 2,
+        up_block_types=("UpDecoderBlock2D",) * 2,
+        norm_num_groups=4,
+        layers_per_block=1,
+    ).save_pretrained(tmp_path / "sd" / "vae")
     sd_unet = UNet2DConditionModel.from_pretrained(tmp_path / "sd" / "unet")
     model = RelightDiffusion.from_pretrained_sd(tmp_path / "sd", tiny_config(resolution=16)).eval()
     assert model.config.space == "latent" and model.config.cross_attention_dim == 12
@@ -162,4 +193,6 @@ def test_from_local_stable_diffusion_folder(tmp_path):
     model.save(tmp_path / "latent")
     with torch.no_grad():
         t = torch.tensor([5])
-        assert torch.equal(RelightDiffusion.load(tmp_path / "latent")(latent, t, cond, code), model(latent, t, cond, code))
+        assert torch.equal(
+            RelightDiffusion.load(tmp_path / "latent")(latent, t, cond, code), model(latent, t, cond, code)
+        )

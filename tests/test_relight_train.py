@@ -6,6 +6,7 @@ import json
 
 import pytest
 import torch
+from test_relight_model import tiny_model
 
 from diamond_sss.data.embedded import embedded_dataset
 from diamond_sss.data.errors import DataError
@@ -14,7 +15,6 @@ from diamond_sss.diffusion.relight.data import load_finetune_views, load_relight
 from diamond_sss.diffusion.relight.losses import RelightLossWeights, low_frequency_l1
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 from diamond_sss.diffusion.relight.train import RelightTrainConfig, finetune, lr_factor, training_loss
-from test_relight_model import tiny_model
 
 
 @pytest.fixture(scope="module")
@@ -67,8 +67,9 @@ def test_one_sample_is_overfit(views):
 
 def test_cycle_term_is_computed(views):
     batch = views.batch(torch.tensor([0, 1]), torch.tensor([0, 2]), torch.tensor([3, 4]))
-    loss, terms = training_loss(tiny_model(), batch, RelightLossWeights(), torch.Generator().manual_seed(0),
-                                with_cycle=True)
+    loss, terms = training_loss(
+        tiny_model(), batch, RelightLossWeights(), torch.Generator().manual_seed(0), with_cycle=True
+    )
     assert set(terms) == {"v_mse", "l1", "ssim", "low_frequency", "cycle"}
     assert bool(torch.isfinite(loss))
 
@@ -97,13 +98,17 @@ def test_resume_continues_exactly(views, tmp_path):
     straight = finetune(views, tmp_path / "straight", tiny_model(), config)
     stopped = RelightTrainConfig(**{**config.__dict__, "time_limit_s": 0.0})
     finetune(views, tmp_path / "resumed", tiny_model(), stopped)
-    steps = [json.loads(line)["step"] for line in (tmp_path / "resumed" / "log.jsonl").read_text().splitlines()]
+    steps = [
+        json.loads(line)["step"] for line in (tmp_path / "resumed" / "log.jsonl").read_text().splitlines()
+    ]
     assert steps == [1]
     resumed = finetune(views, tmp_path / "resumed", tiny_model(seed=5), config)
     a, b = RelightDiffusion.load(straight).state_dict(), RelightDiffusion.load(resumed).state_dict()
     assert all(torch.allclose(a[k], b[k], atol=1e-6) for k in a)
-    assert sorted(p.name for p in (tmp_path / "resumed" / "checkpoints").iterdir()) == ["step_00000002",
-                                                                                         "step_00000003"]
+    assert sorted(p.name for p in (tmp_path / "resumed" / "checkpoints").iterdir()) == [
+        "step_00000002",
+        "step_00000003",
+    ]
     assert json.loads((tmp_path / "resumed" / "selection.json").read_text())["images"]
 
 
@@ -121,6 +126,8 @@ def test_lambertian_baseline_recovers_a_lambertian_image():
     albedo = torch.tensor([0.8, 0.5, 0.2])
     images = [albedo * lambertian_shading(depth, normals, w2c, K, p) for p in lights]
     # Head-on light at distance 2 from the centre pixel: S = 1 / 4.
-    assert float(lambertian_shading(depth, normals, w2c, K, lights[0])[8, 8, 0]) == pytest.approx(0.25, rel=0.02)
+    assert float(lambertian_shading(depth, normals, w2c, K, lights[0])[8, 8, 0]) == pytest.approx(
+        0.25, rel=0.02
+    )
     relit = lambertian_relight(images[0], mask, depth, normals, w2c, K, lights[0], lights[1:])
     assert torch.allclose(relit[0], images[1].clamp(0, 1), atol=1e-5)

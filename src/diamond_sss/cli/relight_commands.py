@@ -7,12 +7,24 @@ from pathlib import Path
 from rich.console import Console
 
 
-def finetune_relight(out: Path, steps: int = 2000, batch_size: int = 8, learning_rate: float = 5e-4,
-                     seed: int = 0, pretrained_sd: Path | None = None, init: Path | None = None,
-                     data: list[Path] | None = None, resolution: int = 64, use_source_light: bool = False,
-                     lpips_weights: str | None = None, mixed_precision: str = "no",
-                     time_limit_s: float | None = None, checkpoint_every: int = 100, resume: bool = True,
-                     quiet: bool = False) -> None:
+def finetune_relight(
+    out: Path,
+    steps: int = 2000,
+    batch_size: int = 8,
+    learning_rate: float = 5e-4,
+    seed: int = 0,
+    pretrained_sd: Path | None = None,
+    init: Path | None = None,
+    data: list[Path] | None = None,
+    resolution: int = 64,
+    use_source_light: bool = False,
+    lpips_weights: str | None = None,
+    mixed_precision: str = "no",
+    time_limit_s: float | None = None,
+    checkpoint_every: int = 100,
+    resume: bool = True,
+    quiet: bool = False,
+) -> None:
     """Fine-tune the relighting diffusion model on the embedded fine-tuning objects (view fixed, <= 7%).
 
     Writes <out>/model (config.json + model.safetensors, the EMA weights), <out>/checkpoints/step_*,
@@ -49,25 +61,47 @@ def finetune_relight(out: Path, steps: int = 2000, batch_size: int = 8, learning
         model = RelightDiffusion.from_pretrained_sd(pretrained_sd, model_config, seed=seed)
     else:
         model = RelightDiffusion.from_config(model_config, seed=seed)
-    views = load_relight_views(list(data), model.config.resolution) if data else \
-        load_finetune_views(model.config.resolution)
-    config = RelightTrainConfig(steps=steps, batch_size=batch_size, learning_rate=learning_rate, seed=seed,
-                                mixed_precision=mixed_precision, time_limit_s=time_limit_s,
-                                checkpoint_every=checkpoint_every)
+    views = (
+        load_relight_views(list(data), model.config.resolution)
+        if data
+        else load_finetune_views(model.config.resolution)
+    )
+    config = RelightTrainConfig(
+        steps=steps,
+        batch_size=batch_size,
+        learning_rate=learning_rate,
+        seed=seed,
+        mixed_precision=mixed_precision,
+        time_limit_s=time_limit_s,
+        checkpoint_every=checkpoint_every,
+    )
     console = Console()
     lpips = load_lpips(lpips_weights)
 
     def log(record: dict) -> None:
         if not quiet:
-            console.print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in record.items()))
+            console.print(
+                " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in record.items())
+            )
 
     folder = finetune(views, out, model, config, lpips=lpips, resume=resume, log=log)
     console.print(f"relighting model -> {folder}")
 
 
-def relight(data: Path, view: int, source_light: int, target_lights: str, geometry: str, out: Path,
-            split: str = "train", model: Path | None = None, steps: int = 20, seed: int = 0,
-            cache: Path | None = None, device: str = "cpu") -> None:
+def relight(
+    data: Path,
+    view: int,
+    source_light: int,
+    target_lights: str,
+    geometry: str,
+    out: Path,
+    split: str = "train",
+    model: Path | None = None,
+    steps: int = 20,
+    seed: int = 0,
+    cache: Path | None = None,
+    device: str = "cpu",
+) -> None:
     """Relight one view of a capture from its source light to target lights with the diffusion model.
 
     Writes <out>/images/v<view>_l<light>.png (RGBA, premultiplied over black), <out>/masks/ and
@@ -92,17 +126,33 @@ def relight(data: Path, view: int, source_light: int, target_lights: str, geomet
     from diamond_sss.data.dataset import OLATDataset
     from diamond_sss.diffusion.common.cache import OutputCache
     from diamond_sss.diffusion.geometry import geometry_source
-    from diamond_sss.diffusion.relight.inference import default_cache_root, load_model, relight_view, write_relit
+    from diamond_sss.diffusion.relight.inference import (
+        default_cache_root,
+        load_model,
+        relight_view,
+        write_relit,
+    )
 
     try:
         lights = [int(x) for x in target_lights.split(",") if x.strip()]
     except ValueError as error:
-        raise ValueError(f"--target-lights must be comma-separated light indices, got {target_lights!r}") from error
+        raise ValueError(
+            f"--target-lights must be comma-separated light indices, got {target_lights!r}"
+        ) from error
     if not lights:
         raise ValueError("no target lights given (--target-lights 3,5,7)")
     source = geometry_source(geometry, device=device, seed=seed)
-    relit = relight_view(load_model(model, device), OLATDataset(data, split), view, source_light, lights, source,
-                         OutputCache(cache or default_cache_root()), num_steps=steps, seed=seed)
+    relit = relight_view(
+        load_model(model, device),
+        OLATDataset(data, split),
+        view,
+        source_light,
+        lights,
+        source,
+        OutputCache(cache or default_cache_root()),
+        num_steps=steps,
+        seed=seed,
+    )
     manifest = write_relit(out, relit)
     hits = sum(item.cached for item in relit)
     Console().print(f"relit view {view} to {len(relit)} lights ({hits} from cache) -> {manifest}")

@@ -16,8 +16,9 @@ from diamond_sss.utils.io import atomic_write_json
 _STEP_DIR = re.compile(r"^step_(\d+)$")
 
 
-def save_checkpoint(accelerator: Accelerator, root: str | os.PathLike, step: int, extra: dict | None = None,
-                    keep: int = 2) -> Path | None:
+def save_checkpoint(
+    accelerator: Accelerator, root: str | os.PathLike, step: int, extra: dict | None = None, keep: int = 2
+) -> Path | None:
     """Save models, optimizers, schedulers, RNG states and registered objects as ``root/step_<step>``.
 
     ``accelerator.save_state`` writes into a temporary folder that is renamed into place once complete,

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 import torch
 from torch import Tensor, nn
@@ -57,8 +57,10 @@ class EMA:
 
     def state_dict(self) -> dict[str, Tensor]:
         """Shadow tensors plus the update counter (as a tensor, safetensors-friendly)."""
-        return {**{f"shadow.{k}": v for k, v in self.shadow.items()},
-                "num_updates": torch.tensor(self.num_updates, dtype=torch.int64)}
+        return {
+            **{f"shadow.{k}": v for k, v in self.shadow.items()},
+            "num_updates": torch.tensor(self.num_updates, dtype=torch.int64),
+        }
 
     def load_state_dict(self, state: dict[str, Tensor]) -> None:
         missing = [k for k in self.shadow if f"shadow.{k}" not in state]

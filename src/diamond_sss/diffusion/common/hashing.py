@@ -27,8 +27,14 @@ def files_hash(root: str | os.PathLike, suffixes: tuple[str, ...] = (".json", ".
     root = Path(root)
     if not root.exists():
         raise FileNotFoundError(f"cannot hash {root}: it does not exist")
-    files = [root] if root.is_file() else sorted(p for p in root.rglob("*") if p.is_file() and p.suffix in suffixes)
+    files = (
+        [root]
+        if root.is_file()
+        else sorted(p for p in root.rglob("*") if p.is_file() and p.suffix in suffixes)
+    )
     digest = hashlib.sha256()
     for path in files:
-        digest.update(f"{path.relative_to(root) if path != root else path.name}|{sha256_file(path)}|".encode())
+        digest.update(
+            f"{path.relative_to(root) if path != root else path.name}|{sha256_file(path)}|".encode()
+        )
     return digest.hexdigest()

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from diffusers import DDIMScheduler, DDPMScheduler
@@ -40,16 +40,25 @@ def make_ddpm_scheduler(config: SchedulerConfig) -> DDPMScheduler:
 def make_ddim_scheduler(config: SchedulerConfig) -> DDIMScheduler:
     """Sampling scheduler: ``trailing`` spacing (the first step starts at pure noise, zero terminal SNR) and a
     last step that lands on the clean prediction."""
-    return DDIMScheduler(**config.kwargs(), clip_sample=False, set_alpha_to_one=True, timestep_spacing="trailing")
+    return DDIMScheduler(
+        **config.kwargs(), clip_sample=False, set_alpha_to_one=True, timestep_spacing="trailing"
+    )
 
 
 DenoiseFn = Callable[[Tensor, Tensor], Tensor]
 
 
 @torch.no_grad()
-def ddim_sample(denoise: DenoiseFn, shape: tuple[int, ...], scheduler: DDIMScheduler, num_steps: int,
-                generator: torch.Generator | None = None, device: torch.device | str = "cpu",
-                dtype: torch.dtype = torch.float32, noise: Tensor | None = None) -> Tensor:
+def ddim_sample(
+    denoise: DenoiseFn,
+    shape: tuple[int, ...],
+    scheduler: DDIMScheduler,
+    num_steps: int,
+    generator: torch.Generator | None = None,
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
+    noise: Tensor | None = None,
+) -> Tensor:
     """Run ``num_steps`` DDIM steps (eta = 0) from Gaussian noise of ``shape``.
 
     ``denoise(x_t [B,...], t [B]) -> model output`` in the scheduler's parameterisation. The initial noise

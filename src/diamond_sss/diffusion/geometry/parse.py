@@ -13,8 +13,10 @@ from diamond_sss.diffusion.geometry.sources import (
     StoredMapsGeometry,
 )
 
-USAGE = ("a reconstruction run folder (holding model.safetensors), 'maps' (depth/normal maps stored with the "
-         "data), 'depth-anything:PATH', 'marigold:PATH' or 'depth-anything:PATH+marigold:PATH'")
+USAGE = (
+    "a reconstruction run folder (holding model.safetensors), 'maps' (depth/normal maps stored with the "
+    "data), 'depth-anything:PATH', 'marigold:PATH' or 'depth-anything:PATH+marigold:PATH'"
+)
 
 
 def geometry_source(spec: str, device: str = "cpu", seed: int = 0) -> GeometrySource:

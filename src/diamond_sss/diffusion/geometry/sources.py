@@ -12,8 +12,17 @@ from torch import Tensor
 from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.diffusion.common.hashing import files_hash
-from diamond_sss.diffusion.geometry.base import GeometryError, GeometryMaps, GeometrySource, normals_from_nearness
-from diamond_sss.diffusion.relight.conditioning import depth_to_nearness, normalized_nearness, world_to_camera_normals
+from diamond_sss.diffusion.geometry.base import (
+    GeometryError,
+    GeometryMaps,
+    GeometrySource,
+    normals_from_nearness,
+)
+from diamond_sss.diffusion.relight.conditioning import (
+    depth_to_nearness,
+    normalized_nearness,
+    world_to_camera_normals,
+)
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -27,7 +36,9 @@ def _camera_maps(depth: Tensor, normals_world: Tensor, mask: Tensor, w2c: Tensor
 
 def _require_dir(path: Path, what: str) -> Path:
     if not path.is_dir():
-        raise GeometryError(f"{what} model path {path} does not exist (models are loaded from local folders only)")
+        raise GeometryError(
+            f"{what} model path {path} does not exist (models are loaded from local folders only)"
+        )
     return path
 
 
@@ -36,8 +47,10 @@ class StoredMapsGeometry(GeometrySource):
 
     def maps(self, dataset: OLATDataset, view: int, image: Tensor, mask: Tensor) -> GeometryMaps:
         if not dataset.has_geometry_maps(view):
-            raise GeometryError(f"{dataset.json_path}: view {view} has no stored depth/normal maps; "
-                                "use a reconstruction run folder or depth-anything:/marigold: models")
+            raise GeometryError(
+                f"{dataset.json_path}: view {view} has no stored depth/normal maps; "
+                "use a reconstruction run folder or depth-anything:/marigold: models"
+            )
         depth, normals = dataset.load_geometry_maps(view)
         return _camera_maps(depth, normals, mask, dataset.viewmats[view])
 
@@ -63,9 +76,14 @@ class RenderedGeometry(GeometrySource):
         camera = dataset.cameras[view]
         viewmat = dataset.viewmats[view][None].to(self.device)
         with torch.no_grad():
-            render = self._scene.render(viewmat, dataset.intrinsics[view][None].to(self.device), camera.width,
-                                        camera.height, dataset.light_positions[:1].to(self.device),
-                                        dataset.light_intensities[:1].to(self.device))
+            render = self._scene.render(
+                viewmat,
+                dataset.intrinsics[view][None].to(self.device),
+                camera.width,
+                camera.height,
+                dataset.light_positions[:1].to(self.device),
+                dataset.light_intensities[:1].to(self.device),
+            )
         gbuffer = render.gbuffer
         depth = (gbuffer.depth[0] * (gbuffer.alpha[0] > 0.5)).cpu()
         return _camera_maps(depth, gbuffer.normal[0].cpu(), mask, dataset.viewmats[view])
@@ -98,13 +116,19 @@ class DepthAnythingGeometry(GeometrySource):
             self._model = self._model.to(self.device).eval()
         height, width = image.shape[:2]
         pixels = linear_to_srgb(image.clamp(0, 1)).permute(2, 0, 1)[None]
-        pixels = F.interpolate(pixels, size=(self.input_size, self.input_size), mode="bicubic", align_corners=False)
+        pixels = F.interpolate(
+            pixels, size=(self.input_size, self.input_size), mode="bicubic", align_corners=False
+        )
         mean = torch.tensor(IMAGENET_MEAN).reshape(1, 3, 1, 1)
         std = torch.tensor(IMAGENET_STD).reshape(1, 3, 1, 1)
         with torch.no_grad():
             out = self._model(pixel_values=((pixels - mean) / std).to(self.device)).predicted_depth
-        out = F.interpolate(out.reshape(1, 1, *out.shape[-2:]).float().cpu(), size=(height, width), mode="bilinear",
-                            align_corners=False)
+        out = F.interpolate(
+            out.reshape(1, 1, *out.shape[-2:]).float().cpu(),
+            size=(height, width),
+            mode="bilinear",
+            align_corners=False,
+        )
         return out[0].permute(1, 2, 0)
 
     def maps(self, dataset: OLATDataset, view: int, image: Tensor, mask: Tensor) -> GeometryMaps:
@@ -134,7 +158,9 @@ class MarigoldGeometry(GeometrySource):
         from diffusers import MarigoldNormalsPipeline
 
         if self._pipe is None:
-            missing = {name: None for name in ("text_encoder", "tokenizer") if not (self.path / name).is_dir()}
+            missing = {
+                name: None for name in ("text_encoder", "tokenizer") if not (self.path / name).is_dir()
+            }
             pipe = MarigoldNormalsPipeline.from_pretrained(self.path, local_files_only=True, **missing)
             if pipe.text_encoder is None:
                 dim = pipe.unet.config.cross_attention_dim
@@ -143,10 +169,16 @@ class MarigoldGeometry(GeometrySource):
             self._pipe.set_progress_bar_config(disable=True)
         srgb = linear_to_srgb(image.clamp(0, 1)).permute(2, 0, 1)[None].to(self.device)
         generator = torch.Generator(device="cpu").manual_seed(self.seed)
-        out = self._pipe(srgb, num_inference_steps=self.steps, generator=generator, output_type="pt",
-                         match_input_resolution=True)
-        prediction = torch.as_tensor(np.asarray(out.prediction.cpu() if isinstance(out.prediction, Tensor)
-                                                else out.prediction)).float()
+        out = self._pipe(
+            srgb,
+            num_inference_steps=self.steps,
+            generator=generator,
+            output_type="pt",
+            match_input_resolution=True,
+        )
+        prediction = torch.as_tensor(
+            np.asarray(out.prediction.cpu() if isinstance(out.prediction, Tensor) else out.prediction)
+        ).float()
         normals = prediction.reshape(-1, *prediction.shape[-3:])[0]
         if normals.shape[0] == 3:
             normals = normals.permute(1, 2, 0)

@@ -15,7 +15,9 @@ from torch import Tensor
 from diamond_sss.data.conventions import pixel_grid, unproject_pixels
 
 
-def lambertian_shading(depth: Tensor, normals_world: Tensor, w2c: Tensor, K: Tensor, light_position: Tensor) -> Tensor:
+def lambertian_shading(
+    depth: Tensor, normals_world: Tensor, w2c: Tensor, K: Tensor, light_position: Tensor
+) -> Tensor:
     """``S [H,W,1]`` of a point light at ``light_position [3]`` (see module doc); 0 where ``depth <= 0``."""
     height, width = depth.shape[:2]
     uv = pixel_grid(height, width).reshape(-1, 2)
@@ -26,8 +28,16 @@ def lambertian_shading(depth: Tensor, normals_world: Tensor, w2c: Tensor, K: Ten
     return cosine.clamp_min(0.0) / distance_sq * (depth > 0)
 
 
-def lambertian_relight(source: Tensor, mask: Tensor, depth: Tensor, normals_world: Tensor, w2c: Tensor, K: Tensor,
-                       source_light: Tensor, target_lights: Tensor) -> Tensor:
+def lambertian_relight(
+    source: Tensor,
+    mask: Tensor,
+    depth: Tensor,
+    normals_world: Tensor,
+    w2c: Tensor,
+    K: Tensor,
+    source_light: Tensor,
+    target_lights: Tensor,
+) -> Tensor:
     """Re-shade ``source [H,W,3]`` from ``source_light [3]`` to each of ``target_lights [L,3]`` -> ``[L,H,W,3]``."""
     keep = (mask > 0.5).to(source.dtype)
     shading_src = lambertian_shading(depth, normals_world, w2c, K, source_light) * keep

@@ -54,10 +54,16 @@ def world_to_camera_normals(normals_world: Tensor, w2c: Tensor) -> Tensor:
     return F.normalize(rotated, dim=-1, eps=1e-8)
 
 
-def conditioning_image(source_linear: Tensor, nearness: Tensor, normals_cam: Tensor, mask: Tensor,
-                       resolution: int) -> Tensor:
+def conditioning_image(
+    source_linear: Tensor, nearness: Tensor, normals_cam: Tensor, mask: Tensor, resolution: int
+) -> Tensor:
     """Stack ``[B,H,W,3|1|3|1]`` maps into the ``[B,8,R,R]`` conditioning image (area-resized to ``R``)."""
-    parts = {"source": (source_linear, 3), "nearness": (nearness, 1), "normals": (normals_cam, 3), "mask": (mask, 1)}
+    parts = {
+        "source": (source_linear, 3),
+        "nearness": (nearness, 1),
+        "normals": (normals_cam, 3),
+        "mask": (mask, 1),
+    }
     batch_hw = source_linear.shape[:3]
     for name, (tensor, channels) in parts.items():
         if tensor.ndim != 4 or tensor.shape[-1] != channels:
@@ -65,12 +71,15 @@ def conditioning_image(source_linear: Tensor, nearness: Tensor, normals_cam: Ten
         if tensor.shape[:3] != batch_hw:
             raise ValueError(f"{name} has shape {tuple(tensor.shape)}, expected [B,H,W] = {tuple(batch_hw)}")
     keep = (mask > MASK_THRESHOLD).to(source_linear.dtype)
-    stacked = torch.cat([
-        linear_to_srgb(source_linear.clamp(0.0, 1.0)) * 2.0 - 1.0,
-        nearness * 2.0 - 1.0,
-        normals_cam * keep,
-        mask * 2.0 - 1.0,
-    ], dim=-1).permute(0, 3, 1, 2)
+    stacked = torch.cat(
+        [
+            linear_to_srgb(source_linear.clamp(0.0, 1.0)) * 2.0 - 1.0,
+            nearness * 2.0 - 1.0,
+            normals_cam * keep,
+            mask * 2.0 - 1.0,
+        ],
+        dim=-1,
+    ).permute(0, 3, 1, 2)
     if stacked.shape[-2:] != (resolution, resolution):
         stacked = F.interpolate(stacked, size=(resolution, resolution), mode="area")
     return stacked.contiguous()

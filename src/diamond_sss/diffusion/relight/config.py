@@ -47,11 +47,15 @@ class RelightModelConfig:
         if self.space not in ("pixel", "latent"):
             raise ValueError(f"space must be 'pixel' or 'latent', got {self.space!r}")
         if self.resolution % (2 ** (len(self.block_out_channels) - 1)) != 0:
-            raise ValueError(f"resolution {self.resolution} must be divisible by "
-                             f"2^(levels - 1) = {2 ** (len(self.block_out_channels) - 1)}")
+            raise ValueError(
+                f"resolution {self.resolution} must be divisible by "
+                f"2^(levels - 1) = {2 ** (len(self.block_out_channels) - 1)}"
+            )
         if not 1 <= self.attention_levels <= len(self.block_out_channels):
-            raise ValueError(f"attention_levels must be in [1, {len(self.block_out_channels)}], "
-                             f"got {self.attention_levels}")
+            raise ValueError(
+                f"attention_levels must be in [1, {len(self.block_out_channels)}], "
+                f"got {self.attention_levels}"
+            )
         if self.scheduler.prediction_type != "v_prediction":
             raise ValueError("the relighting model is trained with v-prediction")
 

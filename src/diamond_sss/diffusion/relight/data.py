@@ -98,8 +98,9 @@ def finetune_object_names() -> list[str]:
     return [n for n in embedded_dataset_names() if n.startswith(FINETUNE_PREFIX)]
 
 
-def load_relight_views(roots: list[str | Path], resolution: int, min_lights: int = 4,
-                       max_fraction: float = MAX_FRACTION) -> RelightViews:
+def load_relight_views(
+    roots: list[str | Path], resolution: int, min_lights: int = 4, max_fraction: float = MAX_FRACTION
+) -> RelightViews:
     """Collect every view with ``>= min_lights`` images from the data folders ``roots``.
 
     Every view keeps its first ``n`` images, ``n`` the smallest light count among the selected views.
@@ -109,7 +110,9 @@ def load_relight_views(roots: list[str | Path], resolution: int, min_lights: int
     lit_views = [_lit_views(dataset, min_lights) for dataset in datasets]
     counts = [len(indices) for views in lit_views for indices in views.values()]
     if not counts:
-        raise DataError(f"no view with >= {min_lights} lights and depth/normal maps in {[str(r) for r in roots]}")
+        raise DataError(
+            f"no view with >= {min_lights} lights and depth/normal maps in {[str(r) for r in roots]}"
+        )
     per_view = min(counts)
     maps, images, sources, codes, records = [], [], [], [], []
     fractions = {}
@@ -128,13 +131,22 @@ def load_relight_views(roots: list[str | Path], resolution: int, min_lights: int
             w2c = dataset.viewmats[view].expand(len(indices), 4, 4)
             codes.append(light_code(dataset.light_positions[lights], w2c, bounds.center, bounds.radius))
             used += len(indices)
-            records += [{"object": Path(root).name, "view": view, "light": int(light),
-                         "image": str(dataset.observations[i].image_path)} for i, light in zip(indices, lights)]
+            records += [
+                {
+                    "object": Path(root).name,
+                    "view": view,
+                    "light": int(light),
+                    "image": str(dataset.observations[i].image_path),
+                }
+                for i, light in zip(indices, lights)
+            ]
         full = _full_capture_size(Path(root), dataset)
         fractions[Path(root).name] = used / full
         if used / full > max_fraction:
-            raise DataError(f"{root}: fine-tuning would use {used} of {full} images ({used / full:.1%}), "
-                            f"more than {max_fraction:.0%} of a capture")
+            raise DataError(
+                f"{root}: fine-tuning would use {used} of {full} images ({used / full:.1%}), "
+                f"more than {max_fraction:.0%} of a capture"
+            )
     return RelightViews(
         maps=torch.stack(maps),
         images=torch.stack(images),

@@ -57,13 +57,23 @@ def load_model(path: str | os.PathLike | None = None, device: str = "cpu") -> Re
     folder = Path(path) if path is not None else shipped_model_path()
     if not (folder / CONFIG_NAME).is_file() or not (folder / WEIGHTS_NAME).is_file():
         hint = "" if path is not None else " (no trained relighting model is shipped; pass --model)"
-        raise FileNotFoundError(f"relighting model not found: {folder} needs {CONFIG_NAME} and {WEIGHTS_NAME}{hint}")
+        raise FileNotFoundError(
+            f"relighting model not found: {folder} needs {CONFIG_NAME} and {WEIGHTS_NAME}{hint}"
+        )
     return RelightDiffusion.load(folder).to(device)
 
 
-def relight_view(model: RelightDiffusion, dataset: OLATDataset, view: int, source_light: int,
-                 target_lights: list[int], geometry: GeometrySource, cache: OutputCache, num_steps: int = 20,
-                 seed: int = 0) -> list[RelitImage]:
+def relight_view(
+    model: RelightDiffusion,
+    dataset: OLATDataset,
+    view: int,
+    source_light: int,
+    target_lights: list[int],
+    geometry: GeometrySource,
+    cache: OutputCache,
+    num_steps: int = 20,
+    seed: int = 0,
+) -> list[RelitImage]:
     """Relight ``(view, source_light)`` of ``dataset`` to every light in ``target_lights`` (lattice indices).
 
     Cache misses are generated in one batch; hits are read back. Raises ``KeyError`` / ``ValueError`` naming
@@ -73,15 +83,21 @@ def relight_view(model: RelightDiffusion, dataset: OLATDataset, view: int, sourc
         raise ValueError(f"view {view} out of range: {dataset.json_path} has {dataset.num_views} views")
     for light in [source_light, *target_lights]:
         if not 0 <= light < dataset.num_lights:
-            raise ValueError(f"light {light} out of range: {dataset.json_path} has {dataset.num_lights} lights")
+            raise ValueError(
+                f"light {light} out of range: {dataset.json_path} has {dataset.num_lights} lights"
+            )
     try:
         index = dataset.observation_index(view, source_light)
     except KeyError as error:
-        raise KeyError(f"no source image of view {view} under light {source_light} in {dataset.json_path}") from error
+        raise KeyError(
+            f"no source image of view {view} under light {source_light} in {dataset.json_path}"
+        ) from error
     sample = dataset.load(index)
     bounds = dataset.bounds
     w2c = dataset.viewmats[view]
-    codes = light_code(dataset.light_positions, w2c.expand(dataset.num_lights, 4, 4), bounds.center, bounds.radius)
+    codes = light_code(
+        dataset.light_positions, w2c.expand(dataset.num_lights, 4, 4), bounds.center, bounds.radius
+    )
     source_key = {
         "model": model.weights_hash(),
         "image": sha256_file(dataset.observations[index].image_path),
@@ -92,41 +108,89 @@ def relight_view(model: RelightDiffusion, dataset: OLATDataset, view: int, sourc
         "steps": num_steps,
         "seed": seed,
     }
-    keys = {light: cache.key({**source_key, "target_code": codes[light].tolist(), "light": light})
-            for light in target_lights}
+    keys = {
+        light: cache.key({**source_key, "target_code": codes[light].tolist(), "light": light})
+        for light in target_lights
+    }
     misses = sorted({light for light in target_lights if cache.get(keys[light]) is None})
     if misses:
-        _generate(model, dataset, view, sample.rgb, sample.mask, misses, codes, source_light, geometry, cache, keys,
-                  num_steps, seed)
+        _generate(
+            model,
+            dataset,
+            view,
+            sample.rgb,
+            sample.mask,
+            misses,
+            codes,
+            source_light,
+            geometry,
+            cache,
+            keys,
+            num_steps,
+            seed,
+        )
     results = []
     for light in target_lights:
         entry = cache.get(keys[light])
         rgb, mask = load_rgba(entry / "image.png")
-        results.append(RelitImage(view=view, light=light, rgb=rgb, mask=mask, entry=entry,
-                                  cached=light not in misses))
+        results.append(
+            RelitImage(view=view, light=light, rgb=rgb, mask=mask, entry=entry, cached=light not in misses)
+        )
     return results
 
 
-def _generate(model: RelightDiffusion, dataset: OLATDataset, view: int, rgb: Tensor, mask: Tensor,
-              lights: list[int], codes: Tensor, source_light: int, geometry: GeometrySource, cache: OutputCache,
-              keys: dict[int, str], num_steps: int, seed: int) -> None:
+def _generate(
+    model: RelightDiffusion,
+    dataset: OLATDataset,
+    view: int,
+    rgb: Tensor,
+    mask: Tensor,
+    lights: list[int],
+    codes: Tensor,
+    source_light: int,
+    geometry: GeometrySource,
+    cache: OutputCache,
+    keys: dict[int, str],
+    num_steps: int,
+    seed: int,
+) -> None:
     maps = geometry.maps(dataset, view, rgb, mask)
     device = next(model.parameters()).device
     count = len(lights)
-    cond = conditioning_image(rgb[None], maps.nearness[None], maps.normals[None], mask[None],
-                              model.config.resolution).expand(count, -1, -1, -1).to(device)
+    cond = (
+        conditioning_image(
+            rgb[None], maps.nearness[None], maps.normals[None], mask[None], model.config.resolution
+        )
+        .expand(count, -1, -1, -1)
+        .to(device)
+    )
     shape = model.sample_shape(1)[1:]
-    noise = torch.stack([torch.randn(shape, generator=torch.Generator().manual_seed(seed * 100_003 + light))
-                         for light in lights])
+    noise = torch.stack(
+        [
+            torch.randn(shape, generator=torch.Generator().manual_seed(seed * 100_003 + light))
+            for light in lights
+        ]
+    )
     with torch.no_grad():
-        out = model.relight(cond, codes[lights].to(device), codes[[source_light] * count].to(device),
-                            num_steps=num_steps, noise=noise).float().cpu()
+        out = (
+            model.relight(
+                cond,
+                codes[lights].to(device),
+                codes[[source_light] * count].to(device),
+                num_steps=num_steps,
+                noise=noise,
+            )
+            .float()
+            .cpu()
+        )
     height, width = rgb.shape[:2]
     if out.shape[-2:] != (height, width):
         out = F.interpolate(out, size=(height, width), mode="bilinear", align_corners=False)
     images = model_to_image(out) * (mask > 1e-3)
     for light, image in zip(lights, images):
-        cache.put(keys[light], lambda folder, image=image: write_png(folder / "image.png", to_srgb8(image, mask)))
+        cache.put(
+            keys[light], lambda folder, image=image: write_png(folder / "image.png", to_srgb8(image, mask))
+        )
 
 
 def write_relit(out: str | os.PathLike, results: list[RelitImage]) -> Path:
@@ -138,5 +202,7 @@ def write_relit(out: str | os.PathLike, results: list[RelitImage]) -> Path:
         name = f"v{item.view:03d}_l{item.light:03d}.png"
         write_png(out / "images" / name, to_srgb8(item.rgb, item.mask))
         write_png(out / "masks" / name, (item.mask[..., 0].numpy() * 255.0 + 0.5).astype("uint8"))
-        manifest.append({"view": item.view, "light": item.light, "image": f"images/{name}", "mask": f"masks/{name}"})
+        manifest.append(
+            {"view": item.view, "light": item.light, "image": f"images/{name}", "mask": f"masks/{name}"}
+        )
     return atomic_write_json(out / MANIFEST_NAME, manifest)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
@@ -44,8 +43,9 @@ def low_frequency_l1(pred: Tensor, target: Tensor, kernel: int) -> Tensor:
     return (F.avg_pool2d(pred, kernel) - F.avg_pool2d(target, kernel)).abs().mean()
 
 
-def image_losses(pred_clean: Tensor, target: Tensor, weights: RelightLossWeights,
-                 lpips: nn.Module | None = None) -> dict[str, Tensor]:
+def image_losses(
+    pred_clean: Tensor, target: Tensor, weights: RelightLossWeights, lpips: nn.Module | None = None
+) -> dict[str, Tensor]:
     """Weighted L1, DSSIM, LPIPS and low-frequency terms of ``pred_clean`` against ``target`` (unweighted keys)."""
     unit_pred, unit_target = to_unit(pred_clean), to_unit(target)
     terms = {

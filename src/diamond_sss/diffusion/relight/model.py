@@ -45,15 +45,22 @@ class RelightDiffusion(nn.Module):
     Stable Diffusion folder) or :meth:`load` (a folder written by :meth:`save`).
     """
 
-    def __init__(self, config: RelightModelConfig, unet: UNet2DConditionModel, controlnet: ControlNetModel,
-                 vae: AutoencoderKL | None = None) -> None:
+    def __init__(
+        self,
+        config: RelightModelConfig,
+        unet: UNet2DConditionModel,
+        controlnet: ControlNetModel,
+        vae: AutoencoderKL | None = None,
+    ) -> None:
         super().__init__()
         if (vae is None) != (config.space == "pixel"):
             raise ValueError(f"a {config.space}-space model {'needs' if vae is None else 'takes no'} VAE")
         self.config = config
         self.unet = unet
         self.controlnet = controlnet
-        self.light_tokens = LightTokens(config.light_input_dim, config.light_tokens, unet.config.cross_attention_dim)
+        self.light_tokens = LightTokens(
+            config.light_input_dim, config.light_tokens, unet.config.cross_attention_dim
+        )
         self.vae = vae
         if vae is not None:
             vae.requires_grad_(False)
@@ -73,7 +80,8 @@ class RelightDiffusion(nn.Module):
                 sample_size=config.resolution,
                 in_channels=3,
                 out_channels=3,
-                down_block_types=("DownBlock2D",) * plain + ("CrossAttnDownBlock2D",) * config.attention_levels,
+                down_block_types=("DownBlock2D",) * plain
+                + ("CrossAttnDownBlock2D",) * config.attention_levels,
                 up_block_types=("CrossAttnUpBlock2D",) * config.attention_levels + ("UpBlock2D",) * plain,
                 block_out_channels=tuple(config.block_out_channels),
                 layers_per_block=config.layers_per_block,
@@ -83,13 +91,15 @@ class RelightDiffusion(nn.Module):
                 class_embed_type="projection",
                 projection_class_embeddings_input_dim=config.light_input_dim,
             )
-            controlnet = ControlNetModel.from_unet(unet, conditioning_channels=CONDITIONING_CHANNELS,
-                                                   conditioning_embedding_out_channels=(16,))
+            controlnet = ControlNetModel.from_unet(
+                unet, conditioning_channels=CONDITIONING_CHANNELS, conditioning_embedding_out_channels=(16,)
+            )
             return cls(config, unet, controlnet)
 
     @classmethod
-    def from_pretrained_sd(cls, path: str | os.PathLike, config: RelightModelConfig | None = None,
-                           seed: int = 0) -> RelightDiffusion:
+    def from_pretrained_sd(
+        cls, path: str | os.PathLike, config: RelightModelConfig | None = None, seed: int = 0
+    ) -> RelightDiffusion:
         """Latent-space model on a local Stable Diffusion folder (``unet/`` and ``vae/`` in diffusers format).
 
         The UNet keeps its weights and gains the light projection in its timestep embedding (new, output layer
@@ -99,8 +109,9 @@ class RelightDiffusion(nn.Module):
         path = Path(path)
         for part in ("unet", "vae"):
             if not (path / part / CONFIG_NAME).is_file():
-                raise FileNotFoundError(f"{path} is not a diffusers Stable Diffusion folder: "
-                                        f"missing {part}/{CONFIG_NAME}")
+                raise FileNotFoundError(
+                    f"{path} is not a diffusers Stable Diffusion folder: missing {part}/{CONFIG_NAME}"
+                )
         vae = AutoencoderKL.from_pretrained(path, subfolder="vae", local_files_only=True)
         factor = 2 ** (len(vae.config.block_out_channels) - 1)
         base = config or RelightModelConfig(space="latent", resolution=512)
@@ -108,19 +119,27 @@ class RelightDiffusion(nn.Module):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             unet = UNet2DConditionModel.from_pretrained(
-                path, subfolder="unet", local_files_only=True, low_cpu_mem_usage=False,
-                class_embed_type="projection", projection_class_embeddings_input_dim=config.light_input_dim,
+                path,
+                subfolder="unet",
+                local_files_only=True,
+                low_cpu_mem_usage=False,
+                class_embed_type="projection",
+                projection_class_embeddings_input_dim=config.light_input_dim,
             )
             for layer in unet.class_embedding.modules():
                 if isinstance(layer, nn.Linear):
                     layer.reset_parameters()
             nn.init.zeros_(unet.class_embedding.linear_2.weight)
             nn.init.zeros_(unet.class_embedding.linear_2.bias)
-            config = RelightModelConfig.from_dict({**config.to_dict(),
-                                                   "cross_attention_dim": unet.config.cross_attention_dim})
+            config = RelightModelConfig.from_dict(
+                {**config.to_dict(), "cross_attention_dim": unet.config.cross_attention_dim}
+            )
             embedding = tuple(16 * 2**i for i in range(factor.bit_length()))
-            controlnet = ControlNetModel.from_unet(unet, conditioning_channels=CONDITIONING_CHANNELS,
-                                                   conditioning_embedding_out_channels=embedding)
+            controlnet = ControlNetModel.from_unet(
+                unet,
+                conditioning_channels=CONDITIONING_CHANNELS,
+                conditioning_embedding_out_channels=embedding,
+            )
             return cls(config, unet, controlnet, vae)
 
     def save(self, folder: str | os.PathLike, half: bool = False) -> Path:
@@ -128,12 +147,15 @@ class RelightDiffusion(nn.Module):
         folder = Path(folder)
         state = {k: (v.half() if half and v.is_floating_point() else v) for k, v in self.state_dict().items()}
         atomic_save_safetensors(folder / WEIGHTS_NAME, state)
-        atomic_write_json(folder / CONFIG_NAME, {
-            "relight": self.config.to_dict(),
-            "unet": _public(self.unet.config),
-            "controlnet": _public(self.controlnet.config),
-            "vae": _public(self.vae.config) if self.vae is not None else None,
-        })
+        atomic_write_json(
+            folder / CONFIG_NAME,
+            {
+                "relight": self.config.to_dict(),
+                "unet": _public(self.unet.config),
+                "controlnet": _public(self.controlnet.config),
+                "vae": _public(self.vae.config) if self.vae is not None else None,
+            },
+        )
         return folder
 
     @classmethod
@@ -149,14 +171,23 @@ class RelightDiffusion(nn.Module):
         controlnet = ControlNetModel.from_config(configs["controlnet"])
         vae = AutoencoderKL.from_config(configs["vae"]) if configs.get("vae") else None
         model = cls(config, unet, controlnet, vae)
-        state = {k: v.float() if v.is_floating_point() else v for k, v in load_safetensors(folder / WEIGHTS_NAME).items()}
+        state = {
+            k: v.float() if v.is_floating_point() else v
+            for k, v in load_safetensors(folder / WEIGHTS_NAME).items()
+        }
         model.load_state_dict(state)
         return model.eval()
 
     def weights_hash(self) -> str:
         """Content hash of the config and weights (cache key)."""
-        return state_dict_hash({**self.state_dict(), "config": torch.tensor(list(
-            json.dumps(self.config.to_dict(), sort_keys=True).encode()), dtype=torch.uint8)})
+        return state_dict_hash(
+            {
+                **self.state_dict(),
+                "config": torch.tensor(
+                    list(json.dumps(self.config.to_dict(), sort_keys=True).encode()), dtype=torch.uint8
+                ),
+            }
+        )
 
     # ------------------------------------------------------------------ spaces
     @property
@@ -176,15 +207,21 @@ class RelightDiffusion(nn.Module):
         return self.vae.decode(sample / self.vae.config.scaling_factor).sample
 
     def sample_shape(self, batch: int) -> tuple[int, int, int, int]:
-        side = self.unet.config.sample_size if self.vae is None else self.config.resolution // (
-            2 ** (len(self.vae.config.block_out_channels) - 1))
+        side = (
+            self.unet.config.sample_size
+            if self.vae is None
+            else self.config.resolution // (2 ** (len(self.vae.config.block_out_channels) - 1))
+        )
         return batch, self.unet.config.in_channels, side, side
 
     # ------------------------------------------------------------------ network
     def light_input(self, target_code: Tensor, source_code: Tensor | None) -> Tensor:
         """The code the network reads: target code, followed by the source code when the config uses it."""
-        if target_code.ndim != 2 or target_code.shape[-1] * (2 if self.config.use_source_light else 1) != \
-                self.config.light_input_dim:
+        if (
+            target_code.ndim != 2
+            or target_code.shape[-1] * (2 if self.config.use_source_light else 1)
+            != self.config.light_input_dim
+        ):
             raise ValueError(f"target_code must be [B, 10], got {tuple(target_code.shape)}")
         if not self.config.use_source_light:
             return target_code
@@ -192,37 +229,71 @@ class RelightDiffusion(nn.Module):
             raise ValueError("this model also needs the source light's code, shaped like target_code")
         return torch.cat([target_code, source_code], dim=-1)
 
-    def forward(self, noisy: Tensor, timesteps: Tensor, conditioning: Tensor, target_code: Tensor,
-                source_code: Tensor | None = None) -> Tensor:
+    def forward(
+        self,
+        noisy: Tensor,
+        timesteps: Tensor,
+        conditioning: Tensor,
+        target_code: Tensor,
+        source_code: Tensor | None = None,
+    ) -> Tensor:
         """Velocity prediction ``v [B,C,h,w]`` for ``noisy [B,C,h,w]`` at ``timesteps [B]``.
 
         ``conditioning [B,8,R,R]`` (see ``conditioning.py``); ``target_code [B,10]`` (and ``source_code``).
         """
         if conditioning.ndim != 4 or conditioning.shape[1] != CONDITIONING_CHANNELS:
-            raise ValueError(f"conditioning must be [B, {CONDITIONING_CHANNELS}, H, W], "
-                             f"got {tuple(conditioning.shape)}")
+            raise ValueError(
+                f"conditioning must be [B, {CONDITIONING_CHANNELS}, H, W], got {tuple(conditioning.shape)}"
+            )
         code = self.light_input(target_code, source_code)
         tokens = self.light_tokens(code)
-        down, mid = self.controlnet(noisy, timesteps, encoder_hidden_states=tokens, controlnet_cond=conditioning,
-                                    class_labels=code, return_dict=False)
-        return self.unet(noisy, timesteps, encoder_hidden_states=tokens, class_labels=code,
-                         down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
+        down, mid = self.controlnet(
+            noisy,
+            timesteps,
+            encoder_hidden_states=tokens,
+            controlnet_cond=conditioning,
+            class_labels=code,
+            return_dict=False,
+        )
+        return self.unet(
+            noisy,
+            timesteps,
+            encoder_hidden_states=tokens,
+            class_labels=code,
+            down_block_additional_residuals=down,
+            mid_block_additional_residual=mid,
+        ).sample
 
     @torch.no_grad()
-    def relight(self, conditioning: Tensor, target_code: Tensor, source_code: Tensor | None = None,
-                num_steps: int = 20, generator: torch.Generator | None = None, noise: Tensor | None = None) -> Tensor:
+    def relight(
+        self,
+        conditioning: Tensor,
+        target_code: Tensor,
+        source_code: Tensor | None = None,
+        num_steps: int = 20,
+        generator: torch.Generator | None = None,
+        noise: Tensor | None = None,
+    ) -> Tensor:
         """DDIM (eta 0) sample of the relit image in model space ``[B,3,R,R]``.
 
         The initial noise is ``noise`` (shape :meth:`sample_shape`) or drawn from ``generator``.
         """
         scheduler = make_ddim_scheduler(self.config.scheduler)
         device = conditioning.device
-        sample = ddim_sample(lambda x, t: self(x, t, conditioning, target_code, source_code),
-                             self.sample_shape(conditioning.shape[0]), scheduler, num_steps, generator, device,
-                             noise=noise)
+        sample = ddim_sample(
+            lambda x, t: self(x, t, conditioning, target_code, source_code),
+            self.sample_shape(conditioning.shape[0]),
+            scheduler,
+            num_steps,
+            generator,
+            device,
+            noise=noise,
+        )
         return self.decode(sample).clamp(-1.0, 1.0)
 
 
 def _public(config: dict) -> dict:
     """A diffusers config without its private keys (``_name_or_path`` etc.), JSON-serialisable."""
-    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dict(config).items() if not k.startswith("_")}
+    return {
+        k: (list(v) if isinstance(v, tuple) else v) for k, v in dict(config).items() if not k.startswith("_")
+    }

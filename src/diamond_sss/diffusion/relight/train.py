@@ -6,9 +6,9 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import torch
 from accelerate import Accelerator
@@ -63,9 +63,14 @@ def step_generator(seed: int, step: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed * 1_000_003 + step)
 
 
-def training_loss(model: RelightDiffusion, batch: dict[str, Tensor], weights: RelightLossWeights,
-                  generator: torch.Generator, with_cycle: bool, lpips: nn.Module | None = None
-                  ) -> tuple[Tensor, dict[str, float]]:
+def training_loss(
+    model: RelightDiffusion,
+    batch: dict[str, Tensor],
+    weights: RelightLossWeights,
+    generator: torch.Generator,
+    with_cycle: bool,
+    lpips: nn.Module | None = None,
+) -> tuple[Tensor, dict[str, float]]:
     """Total loss of one batch (see ``losses.py``) and its unweighted terms.
 
     Timesteps and noise come from ``generator`` (CPU) and are moved to the batch's device.
@@ -101,9 +106,15 @@ def lr_factor(step: int, warmup: int, total: int) -> float:
     return 0.1 + 0.45 * (1.0 + math.cos(math.pi * progress))
 
 
-def finetune(views: RelightViews, out: str | os.PathLike, model: RelightDiffusion, config: RelightTrainConfig,
-             lpips: nn.Module | None = None, resume: bool = True,
-             log: Callable[[dict], None] | None = None) -> Path:
+def finetune(
+    views: RelightViews,
+    out: str | os.PathLike,
+    model: RelightDiffusion,
+    config: RelightTrainConfig,
+    lpips: nn.Module | None = None,
+    resume: bool = True,
+    log: Callable[[dict], None] | None = None,
+) -> Path:
     """Fine-tune ``model`` on ``views``; writes ``out/checkpoints/step_*``, ``out/log.jsonl``,
     ``out/selection.json`` and the EMA weights as ``out/model`` (see :meth:`RelightDiffusion.save`).
 
@@ -118,7 +129,8 @@ def finetune(views: RelightViews, out: str | os.PathLike, model: RelightDiffusio
     trainable = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(trainable, lr=config.learning_rate, weight_decay=config.weight_decay)
     schedule = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda step: lr_factor(step, config.warmup_steps, config.steps))
+        optimizer, lambda step: lr_factor(step, config.warmup_steps, config.steps)
+    )
     model, optimizer, schedule = accelerator.prepare(model, optimizer, schedule)
     unwrapped = accelerator.unwrap_model(model)
     ema = EMA(unwrapped, decay=config.ema_decay)
@@ -136,11 +148,18 @@ def finetune(views: RelightViews, out: str | os.PathLike, model: RelightDiffusio
     started = time.time()
     for step in range(start, config.steps):
         generator = step_generator(config.seed, step)
-        batch = on_device.batch(*[i.to(device) for i in on_device.random_indices(config.batch_size, generator)])
+        batch = on_device.batch(
+            *[i.to(device) for i in on_device.random_indices(config.batch_size, generator)]
+        )
         with accelerator.autocast():
-            loss, terms = training_loss(unwrapped, batch, config.losses, generator,
-                                        with_cycle=config.cycle_every > 0 and step % config.cycle_every == 0,
-                                        lpips=lpips)
+            loss, terms = training_loss(
+                unwrapped,
+                batch,
+                config.losses,
+                generator,
+                with_cycle=config.cycle_every > 0 and step % config.cycle_every == 0,
+                lpips=lpips,
+            )
         optimizer.zero_grad(set_to_none=True)
         accelerator.backward(loss)
         accelerator.clip_grad_norm_(trainable, 1.0)
@@ -150,8 +169,13 @@ def finetune(views: RelightViews, out: str | os.PathLike, model: RelightDiffusio
         done = step + 1
         out_of_time = config.time_limit_s is not None and time.time() - started > config.time_limit_s
         if done % config.log_every == 0 or done == config.steps or out_of_time:
-            record = {"step": done, "loss": float(loss.detach()), **terms, "lr": schedule.get_last_lr()[0],
-                      "elapsed_s": time.time() - started}
+            record = {
+                "step": done,
+                "loss": float(loss.detach()),
+                **terms,
+                "lr": schedule.get_last_lr()[0],
+                "elapsed_s": time.time() - started,
+            }
             with open(out / "log.jsonl", "a") as handle:
                 handle.write(json.dumps(record) + "\n")
             if log is not None:
