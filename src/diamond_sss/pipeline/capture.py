@@ -1,0 +1,64 @@
+"""Writing generated images as a capture on the real capture's lattice (a ``transforms_<name>.json``).
+
+The file declares every camera and light of the real lattice up front (top-level ``cameras`` / ``lights``),
+so its view and light indices are the real capture's, and lists the generated images per view (SSS-3DGS
+variant) with paths relative to the file's folder and a mask file for each image.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from diamond_sss.data.conventions import opencv_w2c_to_opengl_c2w
+from diamond_sss.data.dataset import OLATDataset
+from diamond_sss.utils.io import atomic_write_json
+
+
+@dataclass(frozen=True)
+class GeneratedImage:
+    """One image on the lattice: view and light indices, the image (RGBA or RGB) and an optional mask."""
+
+    view: int
+    light: int
+    image: Path
+    mask: Path | None = None
+
+
+def lattice_header(lattice: OLATDataset) -> dict:
+    """The top-level ``cameras`` / ``lights`` entries that reproduce ``lattice``'s indices."""
+    cameras = []
+    for camera in lattice.cameras:
+        c2w = opencv_w2c_to_opengl_c2w(camera.w2c.double())
+        cameras.append({"transform_matrix": c2w.tolist(), "fl_x": float(camera.K[0, 0]),
+                        "fl_y": float(camera.K[1, 1]), "cx": float(camera.K[0, 2]), "cy": float(camera.K[1, 2]),
+                        "w": camera.width, "h": camera.height})
+    lights = [{"position": light.position.tolist(), "intensity": light.intensity.tolist()}
+              for light in lattice.lights]
+    return {"cameras": cameras, "lights": lights}
+
+
+def write_capture(folder: Path, name: str, lattice: OLATDataset, images: list[GeneratedImage]) -> Path:
+    """Write ``folder/transforms_<name>.json`` listing ``images`` on ``lattice``; returns its path."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    header = lattice_header(lattice)
+    by_view: dict[int, list[GeneratedImage]] = {}
+    for item in images:
+        by_view.setdefault(item.view, []).append(item)
+    frames = []
+    for view in sorted(by_view):
+        items = sorted(by_view[view], key=lambda item: item.light)
+        camera = header["cameras"][view]
+        frame = {key: camera[key] for key in ("transform_matrix", "fl_x", "fl_y", "cx", "cy")}
+        frame["file_paths"] = [os.path.relpath(item.image, folder) for item in items]
+        frame["light_positions"] = [header["lights"][item.light]["position"] for item in items]
+        frame["light_intensities"] = [header["lights"][item.light]["intensity"] for item in items]
+        if all(item.mask is not None for item in items):
+            frame["mask_paths"] = [os.path.relpath(item.mask, folder) for item in items]
+        frames.append(frame)
+    fov_x = 2.0 * math.atan(0.5 * lattice.width / float(lattice.cameras[0].K[0, 0]))
+    payload = {"camera_angle_x": fov_x, "w": lattice.width, "h": lattice.height, **header, "frames": frames}
+    return atomic_write_json(folder / f"transforms_{name}.json", payload)

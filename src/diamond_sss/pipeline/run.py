@@ -1,0 +1,265 @@
+"""The DIAMOND-SSS pipeline (supplement Sec. C.4): diffusion-augmented sparse reconstruction, end to end.
+
+Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
+
+1. ``prelim``   a reconstruction on the real images of the regime (geometry for conditioning, sanity checks);
+2. ``nvs``      novel views: for each real light, the lattice views the regime left out (the ``nvs_views``
+                farthest-point-spread ones when capped) generated from the nearest real view under that light;
+3. ``relight``  every real and generated view relit to the lattice lights the regime left out (the
+                ``relight_lights`` spread ones when capped), from the view's own light, geometry rendered from
+                the preliminary reconstruction;
+4. ``final``    the reconstruction on real images (photometric weight 1) and generated ones (weight
+                ``synthetic_weight``, geometric losses at full weight), with the multi-view losses;
+5. ``eval``     the test split (novel views under novel lights).
+
+Generated images whose mask is empty or far from the preliminary reconstruction's silhouette
+(IoU < ``min_silhouette_iou``) are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from diamond_sss.data.dataset import OLATDataset, directions_from
+from diamond_sss.data.images import load_rgba
+from diamond_sss.data.regimes import farthest_point_order, select_regime
+from diamond_sss.evaluation.metrics import mask_iou
+from diamond_sss.pipeline.capture import GeneratedImage, write_capture
+from diamond_sss.training.config import make_config
+from diamond_sss.training.run import evaluate_run, train_run
+from diamond_sss.training.trainer import ImageSource, load_scene
+from diamond_sss.utils.io import atomic_write_json, sha256_file
+
+AUGMENTS = ("nvs", "relight")
+
+
+@dataclass
+class PipelineConfig:
+    """Settings of :func:`run_pipeline` besides the reconstruction's own configuration."""
+
+    augment: tuple[str, ...] = AUGMENTS
+    nvs_views: int = 12
+    relight_lights: int = 8
+    nvs_model: str | None = None
+    relight_model: str | None = None
+    diffusion_steps: int = 20
+    guidance_scale: float = 3.0
+    min_silhouette_iou: float = 0.5
+    min_mask_fraction: float = 0.002
+    cache_dir: str | None = None
+    device: str = "cpu"
+
+
+@dataclass
+class StageRecord:
+    name: str
+    seconds: float
+    counts: dict[str, Any] = field(default_factory=dict)
+
+
+class PipelineManifest:
+    """``pipeline.json``: inputs, seeds, model hashes and, per finished stage, its time and counts."""
+
+    def __init__(self, path: Path, inputs: dict) -> None:
+        self.path = path
+        previous = json.loads(path.read_text()) if path.is_file() else {}
+        if previous and previous.get("inputs") != inputs:
+            raise ValueError(f"{path} belongs to a pipeline run with other inputs; use another --out")
+        self.data = {"inputs": inputs, "stages": previous.get("stages", {})}
+
+    def done(self, name: str) -> dict | None:
+        return self.data["stages"].get(name)
+
+    def record(self, stage: StageRecord) -> None:
+        self.data["stages"][stage.name] = {"seconds": round(stage.seconds, 3), **stage.counts}
+        atomic_write_json(self.path, self.data)
+
+
+def spread_subset(indices: list[int], directions: torch.Tensor, count: int, seed: int) -> list[int]:
+    """At most ``count`` of ``indices``, spread by farthest-point sampling of their directions."""
+    if count <= 0 or count >= len(indices):
+        return sorted(indices)
+    order = farthest_point_order(directions[indices], count, torch.Generator().manual_seed(seed))
+    return sorted(indices[i] for i in order)
+
+
+def _silhouette_ok(path: Path, mask_path: Path | None, reference_alpha: torch.Tensor,
+                   cfg: PipelineConfig) -> tuple[bool, str]:
+    _, mask = load_rgba(path, mask_path)
+    fraction = float((mask > 0.5).float().mean())
+    if fraction < cfg.min_mask_fraction:
+        return False, "empty_mask"
+    if mask_iou(reference_alpha, mask) < cfg.min_silhouette_iou:
+        return False, "silhouette"
+    return True, "ok"
+
+
+def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "views=5%,lights=5%",
+                 preset: str = "diamond", overrides: dict[str, Any] | None = None, seed: int = 0,
+                 config: PipelineConfig | None = None, show_progress: bool = True) -> dict:
+    """Run the stages above into ``out``; returns the final evaluation (plus counts) as a dict."""
+    cfg = config or PipelineConfig()
+    unknown = set(cfg.augment) - set(AUGMENTS)
+    if unknown:
+        raise ValueError(f"--augment: unknown stage(s) {sorted(unknown)}; use none or a subset of {AUGMENTS}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    overrides = {**(overrides or {}), "seed": seed}
+    train_cfg = make_config(preset, overrides=overrides)
+    real = OLATDataset(data, split, downscale=train_cfg.downscale)
+    selection = select_regime(real, regime, seed)
+    model_hashes = {}
+    if "nvs" in cfg.augment:
+        from diamond_sss.diffusion.common.hashing import files_hash
+        from diamond_sss.diffusion.nvs.pipeline import default_model_dir
+
+        model_hashes["nvs"] = files_hash(cfg.nvs_model or default_model_dir())
+    if "relight" in cfg.augment:
+        from diamond_sss.diffusion.common.hashing import files_hash
+        from diamond_sss.diffusion.relight.inference import shipped_model_path
+
+        model_hashes["relight"] = files_hash(cfg.relight_model or shipped_model_path())
+    manifest = PipelineManifest(out / "pipeline.json", {
+        "data": str(Path(data).resolve()), "split": split, "regime": regime, "preset": preset, "seed": seed,
+        "overrides": overrides, "pipeline": asdict(cfg) | {"augment": list(cfg.augment)},
+        "model_hashes": model_hashes, "data_hash": sha256_file(real.json_path),
+    })
+    real_views = set(selection.views)
+    real_lights = set(selection.lights)
+    center = real.bounds.center
+    view_dirs = directions_from(real.camera_centers, center)
+    light_dirs = directions_from(real.light_positions, center)
+
+    def stage(name: str, body) -> dict:
+        finished = manifest.done(name)
+        if finished is not None:
+            return finished
+        started = time.perf_counter()
+        counts = body()
+        manifest.record(StageRecord(name, time.perf_counter() - started, counts))
+        return manifest.done(name)
+
+    prelim_dir = out / "prelim"
+
+    def prelim_stage() -> dict:
+        result = train_run(data, prelim_dir, split=split, regime=regime, preset=preset, overrides=overrides,
+                           show_progress=show_progress, resume=True)
+        return {"real_images": len(selection.observations), "steps": result.steps}
+
+    stage("prelim", prelim_stage)
+    generated: list[GeneratedImage] = []
+    dropped: dict[str, int] = {}
+    prelim_alpha: dict[int, torch.Tensor] = {}
+    prelim_scene = []
+
+    def reference_alpha(view: int) -> torch.Tensor:
+        if view not in prelim_alpha:
+            if not prelim_scene:
+                prelim_scene.append(load_scene(prelim_dir)[0])
+            scene = prelim_scene[0]
+            camera, light = real.cameras[view], real.lights[0]
+            with torch.no_grad():
+                render = scene.render(camera.w2c[None], camera.K[None], camera.width, camera.height,
+                                      light.position[None], light.intensity[None])
+            prelim_alpha[view] = render.gbuffer.alpha[0]
+        return prelim_alpha[view]
+
+    def keep(item: GeneratedImage) -> bool:
+        ok, reason = _silhouette_ok(item.image, item.mask, reference_alpha(item.view), cfg)
+        if not ok:
+            dropped[reason] = dropped.get(reason, 0) + 1
+        return ok
+
+    nvs_dir = out / "nvs"
+    if "nvs" in cfg.augment:
+        missing = [v for v in range(real.num_views) if v not in real_views]
+        targets = spread_subset(missing, view_dirs, cfg.nvs_views, seed)
+
+        def nvs_stage() -> dict:
+            from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
+
+            calls = 0
+            for light in sorted(real_lights):
+                sources = [v for v in sorted(real_views) if bool(real.presence[v, light])]
+                if not sources or not targets:
+                    continue
+                nearest: dict[int, list[int]] = {}
+                for target in targets:
+                    similarity = view_dirs[sources] @ view_dirs[target]
+                    nearest.setdefault(sources[int(torch.argmax(similarity))], []).append(target)
+                for reference, group in nearest.items():
+                    generate_novel_views(data, nvs_dir / f"l{light:03d}_v{reference:03d}", reference, light,
+                                         ",".join(str(v) for v in group), split=split, model_dir=cfg.nvs_model,
+                                         steps=cfg.diffusion_steps, guidance_scale=cfg.guidance_scale, seed=seed,
+                                         cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
+                                         device=cfg.device)
+                    calls += 1
+            return {"targets": len(targets), "calls": calls}
+
+        stage("nvs", nvs_stage)
+        for manifest_path in sorted(nvs_dir.glob("*/manifest.json")):
+            for entry in json.loads(manifest_path.read_text()):
+                item = GeneratedImage(entry["view"], entry["light"], manifest_path.parent / entry["image"],
+                                      manifest_path.parent / entry["mask"])
+                if keep(item):
+                    generated.append(item)
+
+    relight_dir = out / "relight"
+    if "relight" in cfg.augment:
+        missing_lights = [light for light in range(real.num_lights) if light not in real_lights]
+        target_lights = spread_subset(missing_lights, light_dirs, cfg.relight_lights, seed)
+        sources = [GeneratedImage(o.view, o.light, o.image_path, o.mask_path)
+                   for i, o in enumerate(real.observations) if i in set(selection.observations)] + generated
+        combined_json = write_capture(relight_dir, "sources", real, sources)
+
+        def relight_stage() -> dict:
+            from diamond_sss.diffusion.common.cache import OutputCache
+            from diamond_sss.diffusion.geometry.sources import RenderedGeometry
+            from diamond_sss.diffusion.relight.inference import default_cache_root, load_model, relight_view, write_relit
+
+            model = load_model(cfg.relight_model, device=cfg.device)
+            geometry = RenderedGeometry(prelim_dir, device=cfg.device)
+            cache = OutputCache(Path(cfg.cache_dir) / "relight" if cfg.cache_dir else default_cache_root())
+            dataset = OLATDataset(relight_dir, "sources")
+            first_light: dict[int, int] = {}
+            for obs in dataset.observations:
+                first_light.setdefault(obs.view, obs.light)
+            results = []
+            for view, light in sorted(first_light.items()):
+                results += relight_view(model, dataset, view, light, target_lights, geometry, cache,
+                                        num_steps=cfg.diffusion_steps, seed=seed)
+            write_relit(relight_dir / "out", results)
+            return {"views": len(first_light), "target_lights": len(target_lights), "images": len(results),
+                    "sources_json": combined_json.name}
+
+        stage("relight", relight_stage)
+        manifest_path = relight_dir / "out" / "manifest.json"
+        for entry in json.loads(manifest_path.read_text()):
+            item = GeneratedImage(entry["view"], entry["light"], manifest_path.parent / entry["image"],
+                                  manifest_path.parent / entry["mask"])
+            if keep(item):
+                generated.append(item)
+
+    extra = []
+    if generated:
+        write_capture(out / "synthetic", "train", real, generated)
+        extra = [ImageSource(OLATDataset(out / "synthetic", "train", downscale=train_cfg.downscale),
+                             train_cfg.synthetic_weight)]
+    final_dir = out / "final"
+    stage("final", lambda: {"real_images": len(selection.observations), "synthetic_images": len(generated),
+                            "dropped": dict(dropped),
+                            "steps": train_run(data, final_dir, split=split, regime=regime, preset=preset,
+                                               overrides=overrides, show_progress=show_progress, resume=True,
+                                               extra_sources=extra).steps})
+    if not (Path(data) / "transforms_test.json").is_file():
+        return {"real_images": len(selection.observations), "synthetic_images": len(generated), "dropped": dropped,
+                "note": f"no transforms_test.json in {data}: evaluation skipped"}
+    metrics = stage("eval", lambda: evaluate_run(final_dir, data, split="test", show_progress=show_progress))
+    return {**metrics, "real_images": len(selection.observations), "synthetic_images": len(generated),
+            "dropped": dropped}
