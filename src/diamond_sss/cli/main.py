@@ -9,6 +9,7 @@ import tyro
 
 from diamond_sss.cli.data_commands import info, regimes
 from diamond_sss.cli.demo import demo
+from diamond_sss.cli.pipeline_commands import run
 from diamond_sss.cli.train_commands import ablate, evaluate, export, render, train
 from diamond_sss.data.errors import DataError
 
@@ -18,7 +19,7 @@ def commands() -> dict[str, Callable[..., None]]:
     from diamond_sss.synth.cli import synth
 
     return {"demo": demo, "info": info, "regimes": regimes, "synth": synth, "train": train, "eval": evaluate,
-            "render": render, "export": export, "ablate": ablate}
+            "render": render, "export": export, "ablate": ablate, "run": run}
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -221,7 +221,12 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
         def relight_stage() -> dict:
             from diamond_sss.diffusion.common.cache import OutputCache
             from diamond_sss.diffusion.geometry.sources import RenderedGeometry
-            from diamond_sss.diffusion.relight.inference import default_cache_root, load_model, relight_view, write_relit
+            from diamond_sss.diffusion.relight.inference import (
+                default_cache_root,
+                load_model,
+                relight_view,
+                write_relit,
+            )
 
             model = load_model(cfg.relight_model, device=cfg.device)
             geometry = RenderedGeometry(prelim_dir, device=cfg.device)
