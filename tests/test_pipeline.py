@@ -79,7 +79,7 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
 
 
 def test_sanity_checks_drop_bad_generations(setup, tmp_path):
-    data, nvs, relight, cache = setup
+    data, nvs, _, cache = setup
     cfg = PipelineConfig(augment=("nvs",), nvs_views=2, nvs_model=str(nvs), diffusion_steps=2,
                          min_silhouette_iou=1.01, cache_dir=str(cache))
     result = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg,
