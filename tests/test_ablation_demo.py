@@ -41,8 +41,12 @@ def test_ablation_writes_table_json_and_grid(capture, tmp_path):
 
 
 def test_demo_writes_report(capture, tmp_path, capsys):
-    main(["demo", "--data", str(capture), "--out", str(tmp_path), "--iterations", "2", "--quiet"])
+    main(["demo", "--data", str(capture), "--out", str(tmp_path), "--iterations", "2", "--augment", "none",
+          "--regime", "views=2,lights=1", "--quiet"])
     report = (tmp_path / "report.md").read_text()
-    assert "| dense | `all` | 18 |" in report and "| sparse | `views=5%,lights=5%` | 1 |" in report
-    assert (tmp_path / "sparse" / "eval_test" / "comparison.png").is_file()
+    for method in ("| SSS-3DGS |", "| DIAMOND-SSS |", "| DIAMOND-SSS, all images |"):
+        assert method in report
+    assert (tmp_path / "comparison.png").is_file()
+    stages = json.loads((tmp_path / "diamond" / "pipeline.json").read_text())["stages"]
+    assert list(stages) == ["final", "eval"]
     assert "PSNR" in capsys.readouterr().out

@@ -1,71 +1,107 @@
-"""``diamond-sss demo``: the README's main command, on the embedded demo object."""
+"""``diamond-sss demo``: the README's main command, on the embedded demo object (wax bunny, 64x64)."""
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
 
-DEMO_RUNS = (
-    ("dense", "all"),
-    ("sparse", "views=5%,lights=5%"),
-)
+
+def shipped_augments() -> tuple[str, ...]:
+    """The diffusion stages whose default model ships with the package."""
+    from diamond_sss.diffusion.nvs.pipeline import default_model_dir
+    from diamond_sss.diffusion.relight.inference import shipped_model_path
+
+    available = []
+    if (default_model_dir() / "config.json").is_file():
+        available.append("nvs")
+    if (shipped_model_path() / "config.json").is_file():
+        available.append("relight")
+    return tuple(available)
 
 
-def demo(out: Path = Path("outputs/demo"), data: Path | None = None, iterations: int = 400,
-         preset: str = "diamond", quiet: bool = False) -> None:
-    """Reconstruct the embedded demo object (wax bunny, 64x64) in a dense and a sparse capture regime.
+def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str = "views=5%,lights=5%",
+         iterations: int = 400, augment: str = "auto", dense: bool = True, quiet: bool = False) -> None:
+    """SSS-3DGS vs DIAMOND-SSS on a sparse capture of the embedded demo object, on a CPU budget.
 
-    Trains one run per regime on the CPU-sized schedule, evaluates each on novel views under novel lights,
-    prints the metrics table and writes a Markdown report with figures to --out.
+    Runs (each resumable under --out): SSS-3DGS (`sss3dgs` preset) on the regime's real images; the DIAMOND-SSS
+    pipeline (preliminary reconstruction, novel-view and relighting diffusion with the shipped models,
+    final reconstruction with multi-view losses); with --dense, DIAMOND-SSS on every image as a reference.
+    Prints the metrics on novel views under novel lights and writes report.md and comparison.png.
 
     Args:
-        out: output folder (runs, figures, report.md).
-        data: data folder to use instead of the embedded demo object.
-        iterations: training steps per run.
-        preset: hyperparameter preset (diamond or sss3dgs).
+        out: output folder.
+        data: data folder to use instead of the embedded demo object (needs a test split).
+        regime: sparse capture regime.
+        iterations: training steps of every reconstruction.
+        augment: diffusion stages: auto (those whose model ships with the package) | none | nvs | relight |
+            nvs,relight.
+        dense: also reconstruct from all images (the upper reference).
         quiet: no progress bars.
     """
+    from diamond_sss.data.dataset import OLATDataset
     from diamond_sss.data.embedded import embedded_dataset
+    from diamond_sss.evaluation.evaluate import render_observation
+    from diamond_sss.evaluation.figures import save_image_grid, to_display
+    from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
     from diamond_sss.training.config import short_schedule
     from diamond_sss.training.run import evaluate_run, train_run
+    from diamond_sss.training.trainer import load_scene
     from diamond_sss.utils.io import atomic_write_text
 
     root = data if data is not None else embedded_dataset()
     console = Console()
+    overrides = short_schedule(iterations)
+    if augment == "auto":
+        augments = shipped_augments()
+    else:
+        augments = tuple(s.strip() for s in augment.split(",") if s.strip() and s.strip() != "none")
     rows = []
-    for name, regime in DEMO_RUNS:
-        run = out / name
+
+    def timed(label: str, run_dir: Path, body) -> None:
         started = time.perf_counter()
-        result = train_run(root, run, regime=regime, preset=preset,
-                           overrides=short_schedule(iterations),
-                           show_progress=not quiet, resume=True)
-        metrics = evaluate_run(run, root, split="test", figures=4, show_progress=not quiet)
-        images = json.loads((run / "regime.json").read_text())["images"]
-        rows.append((name, regime, images, result, metrics, time.perf_counter() - started))
-    table = Table(title=f"DIAMOND-SSS demo: {root.name}, novel views x novel lights")
-    for column in ("run", "regime", "train images", "steps", "Gaussians", "PSNR", "SSIM", "mask IoU", "minutes"):
+        metrics = body()
+        rows.append((label, run_dir, metrics, time.perf_counter() - started))
+
+    timed("SSS-3DGS", out / "sss3dgs", lambda: (
+        train_run(root, out / "sss3dgs", regime=regime, preset="sss3dgs", overrides=overrides, resume=True,
+                  show_progress=not quiet),
+        evaluate_run(out / "sss3dgs", root, figures=0, show_progress=not quiet))[1])
+    timed("DIAMOND-SSS", out / "diamond" / "final", lambda: run_pipeline(
+        root, out / "diamond", regime=regime, preset="diamond", overrides=overrides,
+        config=PipelineConfig(augment=augments), show_progress=not quiet))
+    if dense:
+        timed("DIAMOND-SSS, all images", out / "dense", lambda: (
+            train_run(root, out / "dense", regime="all", preset="diamond", overrides=overrides, resume=True,
+                      show_progress=not quiet),
+            evaluate_run(out / "dense", root, figures=0, show_progress=not quiet))[1])
+
+    table = Table(title=f"{root.name}: novel views x novel lights (test split), regime {regime}")
+    for column in ("method", "PSNR", "SSIM", "mask IoU", "synthetic images", "minutes"):
         table.add_column(column)
     lines = [f"# DIAMOND-SSS demo: {root.name}", "",
-             (f"Preset `{preset}`, {iterations} steps per run on the short CPU schedule (`short_schedule` in "
-              "src/diamond_sss/training/config.py). Metrics on sRGB, full frame, black background, test split "
-              "(novel views under novel lights)."), "",
-             "| run | regime | train images | Gaussians | PSNR | SSIM | mask IoU | minutes |",
-             "|---|---|---|---|---|---|---|---|"]
-    for name, regime, images, result, metrics, seconds in rows:
-        table.add_row(name, regime, str(images), str(result.steps), str(result.num_gaussians),
-                      f"{metrics['psnr']:.2f}", f"{metrics['ssim']:.4f}", f"{metrics['mask_iou']:.3f}",
-                      f"{seconds / 60:.1f}")
-        lines.append(f"| {name} | `{regime}` | {images} | {result.num_gaussians} | {metrics['psnr']:.2f} | "
-                     f"{metrics['ssim']:.4f} | {metrics['mask_iou']:.3f} | {seconds / 60:.1f} |")
+             f"Sparse regime `{regime}`, {iterations} steps per reconstruction (`short_schedule`), diffusion "
+             f"augmentation: {', '.join(augments) or 'none (no shipped diffusion model)'}. Metrics on sRGB, full "
+             "frame, black background, test split (novel views under novel lights).", "",
+             "| method | PSNR | SSIM | mask IoU | synthetic images | minutes |", "|---|---|---|---|---|---|"]
+    for label, _, metrics, seconds in rows:
+        synthetic = str(metrics.get("synthetic_images", 0))
+        cells = [f"{metrics['psnr']:.2f}", f"{metrics['ssim']:.4f}", f"{metrics['mask_iou']:.3f}", synthetic,
+                 f"{seconds / 60:.1f}"]
+        table.add_row(label, *cells)
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
     console.print(table)
-    for name, regime, *_ in rows:
-        lines += ["", f"## {name} (`{regime}`)", "", f"![{name}]({name}/eval_test/comparison.png)", "",
-                  f"![{name} decomposition]({name}/eval_test/decomposition.png)"]
-    report = out / "report.md"
-    atomic_write_text(report, "\n".join(lines) + "\n")
-    console.print(f"report: {report}")
 
+    test = OLATDataset(root, "test")
+    picks = [round(i * (len(test) - 1) / 3) for i in range(4)]
+    scenes = [load_scene(run_dir)[0] for _, run_dir, _, _ in rows]
+    grid = [[to_display(test.load(i).rgb)] + [to_display(render_observation(s, test, i, "cpu").radiance[0])
+                                             for s in scenes] for i in picks]
+    figure = save_image_grid(out / "comparison.png", grid, col_labels=["ground truth", *[r[0] for r in rows]],
+                             row_labels=[f"view {test.observations[i].view}, light {test.observations[i].light}"
+                                         for i in picks], title=f"{root.name}, regime {regime}")
+    lines += ["", f"![comparison]({figure.name})", ""]
+    report = atomic_write_text(out / "report.md", "\n".join(lines) + "\n")
+    console.print(f"report: {report}\nfigure: {figure}")

@@ -152,7 +152,8 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
                            show_progress=show_progress, resume=True)
         return {"real_images": len(selection.observations), "steps": result.steps}
 
-    stage("prelim", prelim_stage)
+    if cfg.augment:
+        stage("prelim", prelim_stage)
     generated: list[GeneratedImage] = []
     dropped: dict[str, int] = {}
     prelim_alpha: dict[int, torch.Tensor] = {}
