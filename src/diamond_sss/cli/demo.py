@@ -82,9 +82,9 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
     for column in ("method", "PSNR", "SSIM", "mask IoU", "synthetic images", "minutes"):
         table.add_column(column)
     lines = [f"# DIAMOND-SSS demo: {root.name}", "",
-             f"Sparse regime `{regime}`, {iterations} steps per reconstruction (`short_schedule`), diffusion "
+             (f"Sparse regime `{regime}`, {iterations} steps per reconstruction (`short_schedule`), diffusion "
              f"augmentation: {', '.join(augments) or 'none (no shipped diffusion model)'}. Metrics on sRGB, full "
-             "frame, black background, test split (novel views under novel lights).", "",
+             "frame, black background, test split (novel views under novel lights)."), "",
              "| method | PSNR | SSIM | mask IoU | synthetic images | minutes |", "|---|---|---|---|---|---|"]
     for label, _, metrics, seconds in rows:
         synthetic = str(metrics.get("synthetic_images", 0))
