@@ -10,6 +10,7 @@ import tyro
 from diamond_sss.cli.data_commands import info, regimes
 from diamond_sss.cli.demo import demo
 from diamond_sss.cli.pipeline_commands import run
+from diamond_sss.cli.tune_commands import tune
 from diamond_sss.cli.train_commands import ablate, evaluate, export, render, train
 from diamond_sss.data.errors import DataError
 
@@ -19,7 +20,7 @@ def commands() -> dict[str, Callable[..., None]]:
     from diamond_sss.synth.cli import synth
 
     return {"demo": demo, "info": info, "regimes": regimes, "synth": synth, "train": train, "eval": evaluate,
-            "render": render, "export": export, "ablate": ablate, "run": run}
+            "render": render, "export": export, "ablate": ablate, "run": run, "tune": tune}
 
 
 def main(argv: list[str] | None = None) -> None:
