@@ -123,7 +123,9 @@ def make_train_scheduler(config: NVSConfig) -> DDPMScheduler:
 def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
     """Deterministic DDIM (``eta = 0``) on the same schedule; the last step returns the clean estimate.
 
-    In pixel space the clean estimate is clipped to the image range ``[-1, 1]`` at every step.
+    Trailing timestep spacing, so the first step is at ``t = T - 1`` (pure noise) whatever the step count
+    (one step returns the conditional-mean estimate). In pixel space the clean estimate is clipped to
+    ``[-1, 1]`` at every step.
     """
     return DDIMScheduler(
         num_train_timesteps=config.num_train_timesteps,
@@ -133,7 +135,7 @@ def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
         prediction_type=config.prediction_type,
         clip_sample=config.space == "pixel",
         set_alpha_to_one=True,
-        steps_offset=1,
+        timestep_spacing="trailing",
     )
 
 
