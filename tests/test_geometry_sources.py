@@ -175,3 +175,32 @@ def test_tiny_marigold_wiring(view_sample, tiny_marigold, tiny_depth_anything):
     assert isinstance(combined, CombinedGeometry)
     combined.depth.input_size = 28
     check_maps(combined.maps(dataset, view, rgb, mask), mask)
+
+
+def test_rendered_from_a_reconstruction_run(tmp_path):
+    from diamond_sss.data.analytic import make_capture
+    from diamond_sss.diffusion.geometry import RenderedGeometry
+    from diamond_sss.training.run import train_run
+
+    make_capture(tmp_path / "data", views=4, lights=2, size=16)
+    overrides = {
+        "iterations": 2,
+        "num_gaussians": 200,
+        "batch_size": 2,
+        "lambda_lpips": 0.0,
+        "densify": False,
+        "raytrace_gaussians": 32,
+        "log_every": 1,
+        "image_log_every": 1000,
+        "device": "cpu",
+    }
+    train_run(tmp_path / "data", tmp_path / "run", preset="sss3dgs", overrides=overrides, show_progress=False)
+    source = geometry_source(str(tmp_path / "run"))
+    assert isinstance(source, RenderedGeometry)
+    dataset = OLATDataset(tmp_path / "data")
+    sample = dataset.load(0)
+    maps = source.maps(dataset, sample.view, sample.rgb, sample.mask)
+    assert maps.nearness.shape == (16, 16, 1) and maps.normals.shape == (16, 16, 3)
+    assert bool(torch.isfinite(maps.normals).all()) and float(maps.nearness.max()) <= 1.0
+    assert float(maps.nearness.max()) > 0.5  # the object is rendered inside the mask
+    assert source.key() == RenderedGeometry(tmp_path / "run").key()
