@@ -11,7 +11,7 @@ sample at sampling time. Space: ``pixel`` (RGBA in ``[-1, 1]``, the small offlin
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import torch
@@ -57,7 +57,6 @@ class NVSConfig:
     beta_schedule: str = "scaled_linear"
     prediction_type: str = "epsilon"
     condition_dropout: float = 0.05
-    extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.space not in ("pixel", "latent"):
