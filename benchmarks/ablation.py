@@ -2,7 +2,8 @@
 
 {sss3dgs, diamond without multi-view losses, + silhouette, + depth, + both} x {all, views=5%,lights=5%,
 views=3%,lights=3%}, each trained with the short CPU schedule and scored on novel views under novel lights.
-Writes benchmarks/results/ablation/{ablation.json, ablation.md, ablation_grid.png} (runs are resumable).
+Runs go to outputs/benchmarks/ablation (resumable); ablation.json, ablation.md and ablation_grid.png are
+copied to benchmarks/results/ablation.
 
     python benchmarks/ablation.py --iterations 400
 """
@@ -10,6 +11,7 @@ Writes benchmarks/results/ablation/{ablation.json, ablation.md, ablation_grid.pn
 from __future__ import annotations
 
 import argparse
+import shutil
 from pathlib import Path
 
 from diamond_sss.data.embedded import embedded_dataset
@@ -17,6 +19,7 @@ from diamond_sss.evaluation.ablation import REGIMES, VARIANTS, ablation_table, r
 from diamond_sss.training.config import short_schedule
 
 RESULTS = Path(__file__).resolve().parent / "results" / "ablation"
+RUNS = Path("outputs") / "benchmarks" / "ablation"
 
 
 def main() -> None:
@@ -25,12 +28,16 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=400)
     parser.add_argument("--regimes", nargs="+", default=list(REGIMES))
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS))
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=RUNS, help="run folders (resumable)")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="where the tables and figures are copied")
     args = parser.parse_args()
     data = args.data or embedded_dataset()
     rows = run_ablation(data, args.out, variants=args.variants, regimes=args.regimes, iterations=args.iterations,
                         overrides=short_schedule(args.iterations))
     print(ablation_table(rows))
+    args.results.mkdir(parents=True, exist_ok=True)
+    for name in ("ablation.json", "ablation.md", "ablation_grid.png"):
+        shutil.copyfile(args.out / name, args.results / name)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Reconstruction quality on the embedded demo object per capture regime and preset (issue 3).
 
 Trains with the short CPU schedule and reports PSNR / SSIM / mask IoU on the test split (novel views under
-novel lights). Writes benchmarks/results/quality/{quality.json, quality.md}.
+novel lights). Runs go to outputs/benchmarks/quality (resumable); tables to benchmarks/results/quality.
 
     python benchmarks/quality.py --iterations 400 --presets diamond sss3dgs --regimes all "views=5%,lights=5%"
 """
@@ -19,6 +19,7 @@ from diamond_sss.training.config import short_schedule
 from diamond_sss.training.run import evaluate_run, train_run
 
 RESULTS = Path(__file__).resolve().parent / "results" / "quality"
+RUNS = Path("outputs") / "benchmarks" / "quality"
 
 
 def main() -> None:
@@ -27,7 +28,8 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=400)
     parser.add_argument("--presets", nargs="+", default=["diamond", "sss3dgs"])
     parser.add_argument("--regimes", nargs="+", default=["all", "views=5%,lights=5%"])
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=RUNS, help="run folders (resumable)")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="where the tables and figures are copied")
     args = parser.parse_args()
     data = args.data or embedded_dataset()
     rows = []
@@ -43,9 +45,9 @@ def main() -> None:
     lines = ["| regime | preset | steps | PSNR | SSIM | mask IoU | minutes |", "|---|---|---|---|---|---|---|"]
     lines += [f"| `{r['regime']}` | {r['preset']} | {r['iterations']} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
               f"{r['mask_iou']:.3f} | {r['minutes']:.1f} |" for r in rows]
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "quality.json").write_text(json.dumps(rows, indent=2) + "\n")
-    (args.out / "quality.md").write_text("\n".join(lines) + "\n")
+    args.results.mkdir(parents=True, exist_ok=True)
+    (args.results / "quality.json").write_text(json.dumps(rows, indent=2) + "\n")
+    (args.results / "quality.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
