@@ -248,3 +248,28 @@ def test_declared_lattice_keeps_cameras_and_lights_without_images(tmp_path):
     (tmp_path / "transforms_sparse.json").write_text(json.dumps(sparse))
     with pytest.raises(DataError, match=r"key 'lights': lights\[1\]: expected an object with 'position'"):
         OLATDataset(tmp_path, "sparse")
+
+
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_loader_matches_the_synthetic_meta_json(split):
+    from diamond_sss.data.embedded import embedded_dataset
+
+    root = embedded_dataset()
+    meta = json.loads((root / "meta.json").read_text())
+    ds = OLATDataset(root, split)
+    c2w = torch.tensor(meta["cameras"][split], dtype=torch.float64)
+    lights = torch.tensor(meta["lights"][split], dtype=torch.float32)
+    assert (ds.num_views, ds.num_lights) == (len(c2w), len(lights))
+    assert len(ds) == len(meta["pairs"][split]) == ds.num_views * ds.num_lights
+    assert torch.allclose(ds.viewmats.double(), opengl_c2w_to_opencv_w2c(c2w), atol=1e-5)
+    assert torch.allclose(ds.light_positions, lights, atol=1e-5)
+    assert (ds.width, ds.height) == tuple(meta["size"])
+    assert torch.allclose(ds.intrinsics[0], intrinsics_from_fov(meta["camera_angle_x"], *meta["size"]), atol=1e-4)
+    # the object (unit sphere at the origin) projects to the image centre of every view
+    uv, z = project_points(torch.zeros(1, 3), ds.viewmats, ds.intrinsics)
+    assert torch.allclose(uv[:, 0], torch.full((ds.num_views, 2), 32.0), atol=0.5)
+    assert bool((z > 1.0).all())
+    # and fills a sane part of it: in the sphere's bounds, masks neither empty nor full
+    sample = ds.load(0)
+    assert 0.02 < float(sample.mask.mean()) < 0.6
+    assert ds.bounds.radius >= 1.0 and ds.bounds.near < meta["stage"]["camera_radius"] - 1.0
