@@ -3,7 +3,8 @@
 For each object (never one of the fine-tuning objects) and its light 0, the reference view generates every
 other view; PSNR / SSIM (sRGB, full frame) and mask IoU against the rendered ground truth are binned by the
 angle between target and reference cameras. Baseline: the relightable Gaussian model trained (short CPU
-schedule) on the same single reference image, rendered at the target cameras under the same light.
+schedule) on the same single reference image, rendered at the target cameras under the same light; the
+reference image itself, copied to every target, is reported as the trivial floor ("reference-copy").
 Writes benchmarks/results/nvs_quality/{nvs_quality.json, nvs_quality.md}.
 
     python -m diamond_sss.synth.cli --shape torus --material marble --seed 21 --out /tmp/nvs/torus \\
@@ -71,34 +72,49 @@ def baseline_renders(data: Path, view: int, light: int, targets: list[int], out:
 
 
 def evaluate_object(
-    data: Path, model: Path, out: Path, view: int, light: int, steps: int, guidance: float, iterations: int
+    data: Path,
+    model: Path,
+    out: Path,
+    view: int,
+    light: int,
+    steps: list[int],
+    guidance: float,
+    iterations: int,
 ) -> list[dict]:
+    """Per-image metrics of the model (one method per DDIM step count) and of the Gaussian baseline."""
     dataset = OLATDataset(data, "train")
     targets = [v for v in range(dataset.num_views) if v != view and bool(dataset.presence[v, light])]
-    started = time.perf_counter()
-    manifest = generate_novel_views(
-        data,
-        out / "nvs",
-        view,
-        light,
-        ",".join(map(str, targets)),
-        model_dir=model,
-        steps=steps,
-        guidance_scale=guidance,
-        cache_dir=out / "cache",
-    )
-    nvs_seconds = time.perf_counter() - started
-    entries = json.loads(manifest.read_text())
+    predictions = {}
+    for count in steps:
+        started = time.perf_counter()
+        folder = out / f"nvs_{count}"
+        manifest = generate_novel_views(
+            data,
+            folder,
+            view,
+            light,
+            ",".join(map(str, targets)),
+            model_dir=model,
+            steps=count,
+            guidance_scale=guidance,
+            cache_dir=out / "cache",
+        )
+        images = [load_rgba(folder / entry["image"]) for entry in json.loads(manifest.read_text())]
+        predictions[f"nvs-{count}-steps"] = images
+        print(f"{data.name}: nvs ({count} steps) {time.perf_counter() - started:.1f} s")
+    reference = dataset.load(dataset.observation_index(view, light))
+    predictions["reference-copy"] = [(reference.rgb, reference.mask)] * len(targets)
     started = time.perf_counter()
     base_rgb, base_alpha = baseline_renders(data, view, light, targets, out / "baseline", iterations)
-    base_seconds = time.perf_counter() - started
+    predictions["gaussians"] = list(zip(base_rgb, base_alpha))
+    print(f"{data.name}: baseline {time.perf_counter() - started:.1f} s")
     angles = view_angle_degrees(dataset.viewmats[targets], dataset.viewmats[view].expand(len(targets), 4, 4))
     rows = []
-    for i, (target, entry) in enumerate(zip(targets, entries)):
+    for i, target in enumerate(targets):
         truth = dataset.load(dataset.observation_index(target, light))
-        rgb, alpha = load_rgba(out / "nvs" / entry["image"])
-        for method, pred, pred_alpha in (("nvs", rgb, alpha), ("gaussians", base_rgb[i], base_alpha[i])):
-            m = image_metrics(pred, truth.rgb, pred_alpha, truth.mask)
+        for method, images in predictions.items():
+            rgb, alpha = images[i]
+            m = image_metrics(rgb, truth.rgb, alpha, truth.mask)
             rows.append(
                 {
                     "object": data.name,
@@ -110,14 +126,13 @@ def evaluate_object(
                     "mask_iou": m.mask_iou,
                 }
             )
-    print(f"{data.name}: nvs {nvs_seconds:.1f} s, baseline {base_seconds:.1f} s")
     return rows
 
 
 def summarise(rows: list[dict]) -> list[dict]:
     table = []
     for low, high in ANGLE_BINS:
-        for method in ("nvs", "gaussians"):
+        for method in dict.fromkeys(r["method"] for r in rows):
             sel = [r for r in rows if r["method"] == method and low <= r["angle"] < high]
             if sel:
                 table.append(
@@ -141,7 +156,7 @@ def main() -> None:
     )
     parser.add_argument("--view", type=int, default=0, help="reference view")
     parser.add_argument("--light", type=int, default=0)
-    parser.add_argument("--steps", type=int, default=25, help="DDIM steps")
+    parser.add_argument("--steps", type=int, nargs="+", default=[25, 1], help="DDIM step counts to compare")
     parser.add_argument("--guidance", type=float, default=2.0)
     parser.add_argument("--baseline-iterations", type=int, default=150)
     parser.add_argument("--out", type=Path, default=RESULTS)
