@@ -23,7 +23,7 @@ def shipped_augments() -> tuple[str, ...]:
 
 
 def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str = "views=5%,lights=5%",
-         iterations: int = 400, augment: str = "auto", dense: bool = True, quiet: bool = False) -> None:
+         iterations: int = 1000, augment: str = "auto", dense: bool = True, quiet: bool = False) -> None:
     """SSS-3DGS vs DIAMOND-SSS on a sparse capture of the embedded demo object, on a CPU budget.
 
     Runs (each resumable under --out): SSS-3DGS (`sss3dgs` preset) on the regime's real images; the DIAMOND-SSS
@@ -71,7 +71,8 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
         evaluate_run(out / "sss3dgs", root, figures=0, show_progress=not quiet))[1])
     timed("DIAMOND-SSS", out / "diamond" / "final", lambda: run_pipeline(
         root, out / "diamond", regime=regime, preset="diamond", overrides=overrides,
-        config=PipelineConfig(augment=augments), show_progress=not quiet))
+        config=PipelineConfig(augment=augments, prelim_iterations=max(1, iterations // 3)),
+        show_progress=not quiet))
     if dense:
         timed("DIAMOND-SSS, all images", out / "dense", lambda: (
             train_run(root, out / "dense", regime="all", preset="diamond", overrides=overrides, resume=True,

@@ -2,7 +2,8 @@
 
 Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
 
-1. ``prelim``   a reconstruction on the real images of the regime (geometry for conditioning, sanity checks);
+1. ``prelim``   a reconstruction on the real images of the regime (geometry for conditioning, sanity checks),
+                ``prelim_iterations`` steps (default: the final reconstruction's);
 2. ``nvs``      novel views: for each real light, the lattice views the regime left out (the ``nvs_views``
                 farthest-point-spread ones when capped) generated from the nearest real view under that light;
 3. ``relight``  every real and generated view relit to the lattice lights the regime left out (the
@@ -44,6 +45,7 @@ class PipelineConfig:
     """Settings of :func:`run_pipeline` besides the reconstruction's own configuration."""
 
     augment: tuple[str, ...] = AUGMENTS
+    prelim_iterations: int | None = None
     nvs_views: int = 12
     relight_lights: int = 8
     nvs_model: str | None = None
@@ -148,7 +150,11 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     prelim_dir = out / "prelim"
 
     def prelim_stage() -> dict:
-        result = train_run(data, prelim_dir, split=split, regime=regime, preset=preset, overrides=overrides,
+        prelim_overrides = dict(overrides)
+        if cfg.prelim_iterations is not None:
+            prelim_overrides.update(iterations=cfg.prelim_iterations,
+                                    position_lr_max_steps=cfg.prelim_iterations)
+        result = train_run(data, prelim_dir, split=split, regime=regime, preset=preset, overrides=prelim_overrides,
                            show_progress=show_progress, resume=True)
         return {"real_images": len(selection.observations), "steps": result.steps}
 
