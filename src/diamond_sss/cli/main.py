@@ -12,8 +12,8 @@ from diamond_sss.cli.demo import demo
 from diamond_sss.cli.nvs_commands import finetune_nvs, nvs
 from diamond_sss.cli.pipeline_commands import run
 from diamond_sss.cli.relight_commands import finetune_relight, relight
-from diamond_sss.cli.tune_commands import tune
 from diamond_sss.cli.train_commands import ablate, evaluate, export, render, train
+from diamond_sss.cli.tune_commands import tune
 from diamond_sss.data.errors import DataError
 
 
