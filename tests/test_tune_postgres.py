@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 TINY_SETS = ["num_gaussians=64", "init=random", "batch_size=1", "lambda_sil=0", "lambda_depth=0",
              "raytrace_every=1000", "raytrace_gaussians=16", "raytrace_directions=2", "densify=false"]
 HEARTBEAT = 2  # seconds; a trial silent for 2 x HEARTBEAT is taken for dead
+ITERATIONS = 60  # steps per trial: long enough (about a second even on an idle machine) to be killed mid-trial
 FINISHED = (TrialState.COMPLETE, TrialState.PRUNED)
 
 
@@ -111,14 +112,14 @@ def shared_study(postgres_url, capture, tmp_path_factory):
     """Workers A and B start together on an empty database; A is killed (SIGKILL) in the middle of a trial,
     and a worker R is restarted at once (in this process) while B goes on. Returns what happened."""
     n_trials, base = 4, tmp_path_factory.mktemp("shared_study")
-    a, b = (_start_worker(capture, base / name, postgres_url, "shared", w, n_trials, 3)
+    a, b = (_start_worker(capture, base / name, postgres_url, "shared", w, n_trials, ITERATIONS)
             for w, name in ((0, "a"), (1, "b")))
     storage = make_storage(StudySettings(storage=postgres_url, heartbeat_interval=HEARTBEAT))
     deadline, victim = time.monotonic() + 180, None
     while victim is None:
         log = (base / "a" / "worker.log").read_text()[-3000:]
         assert a.poll() is None and time.monotonic() < deadline, log
-        time.sleep(0.2)
+        time.sleep(0.05)
         try:
             running = optuna.load_study(study_name="shared", storage=storage).get_trials(
                 deepcopy=False, states=(TrialState.RUNNING,))
@@ -128,7 +129,7 @@ def shared_study(postgres_url, capture, tmp_path_factory):
     a.kill()  # no clean-up: the trial stays RUNNING until its heartbeat is stale
     a.wait()
     state_after_kill = optuna.load_study(study_name="shared", storage=storage).trials[victim.number].state
-    tune(capture, base / "r", trials=n_trials, storage=postgres_url, study="shared", iterations=3,
+    tune(capture, base / "r", trials=n_trials, storage=postgres_url, study="shared", iterations=ITERATIONS,
          report_every=1, validation_images=1, worker=2, device="cpu", heartbeat_interval=HEARTBEAT,
          set_=TINY_SETS)
     _finish(b, base / "b")
