@@ -87,3 +87,15 @@ def test_sanity_checks_drop_bad_generations(setup, tmp_path):
     assert result["synthetic_images"] == 0 and sum(result["dropped"].values()) == 2
     with pytest.raises(ValueError, match="unknown stage"):
         run_pipeline(data, tmp_path / "x", config=PipelineConfig(augment=("nvs", "super-resolution")))
+
+
+def test_parse_augment_and_missing_models(setup, tmp_path):
+    from diamond_sss.pipeline.run import parse_augment, shipped_augments
+
+    assert parse_augment("none") == () and parse_augment("nvs, relight") == ("nvs", "relight")
+    assert parse_augment("auto") == shipped_augments()
+    with pytest.raises(ValueError, match="unknown stage"):
+        parse_augment("nvs,upscale")
+    cfg = PipelineConfig(augment=("relight",), relight_model=str(tmp_path / "missing"))
+    with pytest.raises(FileNotFoundError, match="no relight model in .*missing: pass --relight-model"):
+        run_pipeline(setup[0], tmp_path / "run", overrides=TRAIN, config=cfg, show_progress=False)

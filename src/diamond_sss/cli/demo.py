@@ -9,19 +9,6 @@ from rich.console import Console
 from rich.table import Table
 
 
-def shipped_augments() -> tuple[str, ...]:
-    """The diffusion stages whose default model ships with the package."""
-    from diamond_sss.diffusion.nvs.pipeline import default_model_dir
-    from diamond_sss.diffusion.relight.inference import shipped_model_path
-
-    available = []
-    if (default_model_dir() / "config.json").is_file():
-        available.append("nvs")
-    if (shipped_model_path() / "config.json").is_file():
-        available.append("relight")
-    return tuple(available)
-
-
 def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str = "views=5%,lights=5%",
          iterations: int = 1000, augment: str = "auto", dense: bool = True, quiet: bool = False) -> None:
     """SSS-3DGS vs DIAMOND-SSS on a sparse capture of the embedded demo object, on a CPU budget.
@@ -45,7 +32,7 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
     from diamond_sss.data.embedded import embedded_dataset
     from diamond_sss.evaluation.evaluate import render_observation
     from diamond_sss.evaluation.figures import save_image_grid, to_display
-    from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
+    from diamond_sss.pipeline.run import PipelineConfig, parse_augment, run_pipeline
     from diamond_sss.training.config import short_schedule
     from diamond_sss.training.run import evaluate_run, train_run
     from diamond_sss.training.trainer import load_scene
@@ -54,10 +41,7 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
     root = data if data is not None else embedded_dataset()
     console = Console()
     overrides = short_schedule(iterations)
-    if augment == "auto":
-        augments = shipped_augments()
-    else:
-        augments = tuple(s.strip() for s in augment.split(",") if s.strip() and s.strip() != "none")
+    augments = parse_augment(augment)
     rows = []
 
     def timed(label: str, run_dir: Path, body) -> None:

@@ -11,7 +11,7 @@ from diamond_sss.cli.train_commands import SetArg
 
 
 def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lights=5%", preset: str = "diamond",
-        augment: str = "nvs,relight", iterations: int | None = None, set_: SetArg = [],  # noqa: B006
+        augment: str = "auto", iterations: int | None = None, set_: SetArg = [],  # noqa: B006
         nvs_views: int = 12, relight_lights: int = 8, nvs_model: str | None = None,
         relight_model: str | None = None, diffusion_steps: int = 20, cache_dir: str | None = None, seed: int = 0,
         device: str = "cpu", json: bool = False, quiet: bool = False) -> None:
@@ -26,7 +26,7 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         split: training split.
         regime: capture regime of the real images (e.g. views=5%,lights=5%).
         preset: reconstruction preset for the preliminary and final reconstructions.
-        augment: none | nvs | relight | nvs,relight.
+        augment: auto (the stages whose model ships with the package) | none | nvs | relight | nvs,relight.
         iterations: training steps of each reconstruction (default: the preset's).
         nvs_views: at most this many missing views generated per real light (0: all).
         relight_lights: at most this many missing lights generated per view (0: all).
@@ -39,10 +39,10 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         json: print the final metrics as JSON.
         quiet: no progress bars.
     """
-    from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
+    from diamond_sss.pipeline.run import PipelineConfig, parse_augment, run_pipeline
     from diamond_sss.training.config import parse_sets
 
-    stages = () if augment.strip() in ("", "none") else tuple(s.strip() for s in augment.split(",") if s.strip())
+    stages = parse_augment(augment)
     overrides = parse_sets(set_)
     if iterations is not None:
         overrides["iterations"] = iterations

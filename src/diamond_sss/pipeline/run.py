@@ -83,6 +83,40 @@ class PipelineManifest:
         atomic_write_json(self.path, self.data)
 
 
+def shipped_augments() -> tuple[str, ...]:
+    """The diffusion stages whose default model ships with the package."""
+    from diamond_sss.diffusion.nvs.pipeline import default_model_dir
+    from diamond_sss.diffusion.relight.inference import shipped_model_path
+
+    available = []
+    if (default_model_dir() / "config.json").is_file():
+        available.append("nvs")
+    if (shipped_model_path() / "config.json").is_file():
+        available.append("relight")
+    return tuple(available)
+
+
+def parse_augment(text: str) -> tuple[str, ...]:
+    """``auto`` (the stages whose model ships), ``none`` or a comma list of ``nvs`` / ``relight``."""
+    text = text.strip()
+    if text == "auto":
+        return shipped_augments()
+    stages = tuple(part.strip() for part in text.split(",") if part.strip() and part.strip() != "none")
+    unknown = set(stages) - set(AUGMENTS)
+    if unknown:
+        raise ValueError(f"--augment: unknown stage(s) {sorted(unknown)}; use auto, none or a subset of {AUGMENTS}")
+    return stages
+
+
+def _model_hash(stage: str, folder: str | Path) -> str:
+    from diamond_sss.diffusion.common.hashing import files_hash
+
+    if not Path(folder).is_dir():
+        raise FileNotFoundError(f"no {stage} model in {folder}: pass --{stage}-model PATH (train one with "
+                                f"`diamond-sss finetune-{stage}`) or leave '{stage}' out of --augment")
+    return files_hash(folder)
+
+
 def spread_subset(indices: list[int], directions: torch.Tensor, count: int, seed: int) -> list[int]:
     """At most ``count`` of ``indices``, spread by farthest-point sampling of their directions."""
     if count <= 0 or count >= len(indices):
@@ -118,15 +152,13 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     selection = select_regime(real, regime, seed)
     model_hashes = {}
     if "nvs" in cfg.augment:
-        from diamond_sss.diffusion.common.hashing import files_hash
         from diamond_sss.diffusion.nvs.pipeline import default_model_dir
 
-        model_hashes["nvs"] = files_hash(cfg.nvs_model or default_model_dir())
+        model_hashes["nvs"] = _model_hash("nvs", cfg.nvs_model or default_model_dir())
     if "relight" in cfg.augment:
-        from diamond_sss.diffusion.common.hashing import files_hash
         from diamond_sss.diffusion.relight.inference import shipped_model_path
 
-        model_hashes["relight"] = files_hash(cfg.relight_model or shipped_model_path())
+        model_hashes["relight"] = _model_hash("relight", cfg.relight_model or shipped_model_path())
     manifest = PipelineManifest(out / "pipeline.json", {
         "data": str(Path(data).resolve()), "split": split, "regime": regime, "preset": preset, "seed": seed,
         "overrides": overrides, "pipeline": asdict(cfg) | {"augment": list(cfg.augment)},
