@@ -7,31 +7,12 @@ import json
 import imageio.v3 as iio
 import pytest
 import torch
+from tiny_models import TINY_NVS as TINY
 
 from diamond_sss.cli.nvs_commands import nvs
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.diffusion.nvs import pipeline
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
-
-TINY = {
-    "image_size": 16,
-    "block_out_channels": (16, 32),
-    "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D"),
-    "up_block_types": ("CrossAttnUpBlock2D", "UpBlock2D"),
-    "attention_head_dim": 8,
-    "norm_num_groups": 8,
-    "cross_attention_dim": 32,
-    "embed_dim": 16,
-    "encoder_channels": (8,),
-}
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from tiny_models import TINY_NVS as TINY
 
 from diamond_sss.data.conventions import (
     intrinsics_from_fov,
@@ -22,28 +23,6 @@ from diamond_sss.diffusion.nvs.rays import (
     relative_spherical_pose,
     view_angle_degrees,
 )
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny models run fastest on one thread on a loaded machine; restored afterwards."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-TINY = {
-    "image_size": 16,
-    "block_out_channels": (16, 32),
-    "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D"),
-    "up_block_types": ("CrossAttnUpBlock2D", "UpBlock2D"),
-    "attention_head_dim": 8,
-    "norm_num_groups": 8,
-    "cross_attention_dim": 32,
-    "embed_dim": 16,
-    "encoder_channels": (8,),
-}
 
 
 def camera(azimuth: float, elevation: float = 0.3, radius: float = 4.0) -> torch.Tensor:

@@ -6,6 +6,7 @@ import json
 
 import pytest
 import torch
+from tiny_models import TINY_NVS, TINY_RELIGHT
 
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
@@ -15,11 +16,6 @@ from diamond_sss.diffusion.relight.model import RelightDiffusion
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
 from diamond_sss.pipeline.run import PipelineConfig, run_pipeline, spread_subset
 
-TINY_NVS = {"image_size": 16, "block_out_channels": (16, 32), "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D"),
-            "up_block_types": ("CrossAttnUpBlock2D", "UpBlock2D"), "attention_head_dim": 8, "norm_num_groups": 8,
-            "cross_attention_dim": 32, "embed_dim": 16, "encoder_channels": (8,)}
-TINY_RELIGHT = {"resolution": 16, "block_out_channels": (8, 16), "norm_num_groups": 4, "cross_attention_dim": 8,
-                "attention_head_dim": 4, "light_tokens": 2}
 TRAIN = {"num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "iterations": 2, "raytrace_gaussians": 32,
          "mv_pixels_per_pair": 16, "log_every": 1, "device": "cpu"}
 

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from tiny_models import TINY_RELIGHT
 
 from diamond_sss.data.conventions import look_at_opengl_c2w, opengl_c2w_to_opencv_w2c
 from diamond_sss.diffusion.common.sampling import SchedulerConfig, make_ddpm_scheduler
@@ -17,15 +18,7 @@ from diamond_sss.diffusion.relight.model import RelightDiffusion
 
 
 def tiny_config(**overrides) -> RelightModelConfig:
-    base = {
-        "resolution": 16,
-        "block_out_channels": (8, 16),
-        "norm_num_groups": 4,
-        "cross_attention_dim": 8,
-        "attention_head_dim": 4,
-        "light_tokens": 2,
-    }
-    return RelightModelConfig(**{**base, **overrides})
+    return RelightModelConfig(**{**TINY_RELIGHT, **overrides})
 
 
 def tiny_model(seed: int = 0, **overrides) -> RelightDiffusion:
