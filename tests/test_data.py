@@ -273,3 +273,16 @@ def test_loader_matches_the_synthetic_meta_json(split):
     sample = ds.load(0)
     assert 0.02 < float(sample.mask.mean()) < 0.6
     assert ds.bounds.radius >= 1.0 and ds.bounds.near < meta["stage"]["camera_radius"] - 1.0
+
+
+def test_corrupt_and_truncated_images_name_the_file(tmp_path):
+    make_capture(tmp_path, views=2, lights=2, size=8)
+    (tmp_path / "train/v000_l001.png").write_text("not an image")
+    with pytest.raises(DataError, match=r"v000_l001.png: not a readable image"):
+        OLATDataset(tmp_path)
+    make_capture(tmp_path, views=2, lights=2, size=8)
+    path = tmp_path / "train/v001_l000.png"
+    path.write_bytes(path.read_bytes()[:60])
+    ds = OLATDataset(tmp_path)  # the header is intact: the error comes when the pixels are read
+    with pytest.raises(DataError, match=r"v001_l000.png: cannot decode image, corrupt or truncated"):
+        ds.load(ds.observation_index(1, 0))

@@ -51,7 +51,7 @@ def read_header(path: Path) -> ImageHeader:
     try:
         props = iio.improps(path)
     except Exception as exc:  # imageio raises many types for unreadable files
-        raise DataError(f"{path}: cannot read image header ({exc})") from exc
+        raise DataError(f"{path}: not a readable image (corrupt, truncated, or not PNG/JPEG/EXR)") from exc
     shape = props.shape
     channels = 1 if len(shape) == 2 else shape[-1]
     return ImageHeader(shape[1], shape[0], channels, props.dtype.itemsize * 8)
@@ -86,8 +86,9 @@ def read_image_array(path: Path) -> np.ndarray:
             scale = float(np.iinfo(array.dtype).max) if np.issubdtype(array.dtype, np.integer) else 1.0
     except DataError:
         raise
-    except Exception as exc:
-        raise DataError(f"{path}: cannot decode image ({exc})") from exc
+    except Exception as exc:  # pypng / imageio raise many types for broken files
+        raise DataError(f"{path}: cannot decode image, corrupt or truncated ({type(exc).__name__}: "
+                        f"{str(exc).splitlines()[0] if str(exc) else ''})") from exc
     return (array.astype(np.float32) / scale).clip(0.0, 1.0)
 
 
