@@ -5,9 +5,9 @@ import math
 import pytest
 import torch
 
+from diamond_sss.rendering import quat_to_rotmat
 from diamond_sss.shading import (
     gaussian_transmittance,
-    quaternion_to_rotation,
     ray_gaussian_max_response,
     raytraced_visibility,
 )
@@ -67,12 +67,12 @@ def test_t_range_limits_which_gaussians_count():
     torch.testing.assert_close(behind, torch.tensor([0.5]))
 
 
-def test_quaternion_to_rotation():
+def test_quat_to_rotmat():
     half = math.sqrt(0.5)
-    rot = quaternion_to_rotation(torch.tensor([[half, 0.0, 0.0, half], [2.0, 0.0, 0.0, 0.0]]))
+    rot = quat_to_rotmat(torch.tensor([[half, 0.0, 0.0, half], [2.0, 0.0, 0.0, 0.0]]))
     torch.testing.assert_close(rot[0], torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
     torch.testing.assert_close(rot[1], torch.eye(3))
-    random = quaternion_to_rotation(torch.randn(16, 4, generator=torch.Generator().manual_seed(0)))
+    random = quat_to_rotmat(torch.randn(16, 4, generator=torch.Generator().manual_seed(0)))
     torch.testing.assert_close(
         random @ random.transpose(-1, -2), torch.eye(3).expand(16, 3, 3), atol=1e-5, rtol=0
     )
@@ -83,7 +83,7 @@ def test_anisotropic_max_response_matches_brute_force_sampling():
     gen = torch.Generator().manual_seed(4)
     means, quats, scales, _ = random_scene(6, seed=5)
     scales = scales.double() * torch.tensor([1.0, 3.0, 0.3], dtype=torch.float64)
-    rot = quaternion_to_rotation(quats.double())
+    rot = quat_to_rotmat(quats.double())
     precision = rot @ torch.diag_embed(scales.pow(-2)) @ rot.transpose(-1, -2)
     origins = (means.double() + 0.05 * torch.randn(6, 3, generator=gen, dtype=torch.float64)) - 2.0
     dirs = torch.nn.functional.normalize(
@@ -103,7 +103,7 @@ def test_anisotropic_max_response_matches_brute_force_sampling():
 def brute_force_transmittance(origins, dirs, means, quats, scales, opacities, t_max):
     """Dense float64 reference: explicit covariance, explicit segment-vs-sphere cull, all pairs."""
     o, d, mu = origins.double(), dirs.double(), means.double()
-    rot = quaternion_to_rotation(quats.double())
+    rot = quat_to_rotmat(quats.double())
     precision = rot @ torch.diag_embed(scales.double().pow(-2)) @ rot.transpose(-1, -2)
     diff = o[:, None, :] - mu[None, :, :]  # [R, N, 3]
     a = torch.einsum("ri,nij,rj->rn", d, precision, d)

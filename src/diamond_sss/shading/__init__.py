@@ -21,7 +21,6 @@ from diamond_sss.shading.ggx import (
 from diamond_sss.shading.raytrace import (
     VisibilitySamples,
     gaussian_transmittance,
-    quaternion_to_rotation,
     ray_gaussian_max_response,
     raytraced_visibility,
     sample_uniform_sphere,
@@ -59,7 +58,6 @@ __all__ = [
     "num_sh_bases",
     "pbr_shade",
     "positional_encoding",
-    "quaternion_to_rotation",
     "ray_gaussian_max_response",
     "raytraced_visibility",
     "sample_uniform_sphere",

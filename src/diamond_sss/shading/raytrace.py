@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from diamond_sss.rendering.projection import quat_to_rotmat
+
 CULL_SIGMAS = 3.0
 
 
@@ -25,23 +27,6 @@ class VisibilitySamples:
 
     dirs: Tensor
     visibility: Tensor
-
-
-def quaternion_to_rotation(quats: Tensor) -> Tensor:
-    """Rotation matrices of (not necessarily unit) quaternions ``(w, x, y, z)``. ``[...,4] -> [...,3,3]``."""
-    w, x, y, z = F.normalize(quats, dim=-1).unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z),
-        2 * (x * y - w * z),
-        2 * (x * z + w * y),
-        2 * (x * y + w * z),
-        1 - 2 * (x * x + z * z),
-        2 * (y * z - w * x),
-        2 * (x * z - w * y),
-        2 * (y * z + w * x),
-        1 - 2 * (x * x + y * y),
-    ]
-    return torch.stack(rows, dim=-1).unflatten(-1, (3, 3))
 
 
 def ray_gaussian_max_response(
@@ -125,7 +110,7 @@ def gaussian_transmittance(
     # Centre the scene so the expanded squared distances below do not cancel catastrophically.
     centre = means.mean(dim=0) if num_gaussians > 0 else means.new_zeros(3)
     means, origins = means - centre, origins - centre
-    whiten = quaternion_to_rotation(quats).transpose(-1, -2) / scales.unsqueeze(-1)
+    whiten = quat_to_rotmat(quats).transpose(-1, -2) / scales.unsqueeze(-1)
     radius = CULL_SIGMAS * scales.amax(dim=-1)
     # Culling as two matmuls: |mu - o|^2 - r^2 = [o, |o|^2, 1] . [-2 mu, 1, |mu|^2 - r^2] and
     # t_c = d.(mu - o) = [d, -d.o] . [mu, 1]; the sphere meets the ray line iff |mu - o|^2 - r^2 <= t_c^2.
