@@ -286,3 +286,11 @@ def test_corrupt_and_truncated_images_name_the_file(tmp_path):
     ds = OLATDataset(tmp_path)  # the header is intact: the error comes when the pixels are read
     with pytest.raises(DataError, match=r"v001_l000.png: cannot decode image, corrupt or truncated"):
         ds.load(ds.observation_index(1, 0))
+
+
+def test_sample_bilinear_hits_pixel_centres():
+    from diamond_sss.data.conventions import sample_bilinear
+
+    image = torch.arange(12, dtype=torch.float32).reshape(1, 3, 4)
+    uv = torch.tensor([[[0.5, 0.5], [3.5, 2.5], [1.0, 0.5], [2.5, 1.0], [-5.0, 0.5]]])
+    assert torch.allclose(sample_bilinear(image, uv), torch.tensor([[0.0, 11.0, 0.5, 4.0, 0.0]]))

@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 # OpenGL camera axes -> OpenCV camera axes: flip Y and Z.
@@ -159,6 +160,21 @@ def pixel_ray_directions(w2c: Tensor, K: Tensor, height: int, width: int) -> Ten
     points = unproject_pixels(uv, ones, w2c, K)
     dirs = points - camera_centers(w2c)
     return (dirs / dirs.norm(dim=-1, keepdim=True)).reshape(height, width, 3)
+
+
+def sample_bilinear(image: Tensor, uv: Tensor) -> Tensor:
+    """Bilinear lookup of ``image [P,H,W]`` at continuous pixel coordinates ``uv [P,n,2]`` -> ``[P,n]``.
+
+    With the pixel-centre convention above, ``grid_sample(align_corners=False)`` at ``u / W * 2 - 1`` hits
+    texel centres exactly; coordinates outside the image read the border value. Differentiable in both inputs.
+    """
+    height, width = image.shape[-2:]
+    scale = uv.new_tensor([2.0 / width, 2.0 / height])
+    grid = (uv * scale - 1.0).unsqueeze(1)
+    sampled = F.grid_sample(
+        image.unsqueeze(1), grid.to(image.dtype), mode="bilinear", padding_mode="border", align_corners=False
+    )
+    return sampled[:, 0, 0, :]
 
 
 def srgb_to_linear(srgb: Tensor) -> Tensor:

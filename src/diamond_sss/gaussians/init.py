@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from plyfile import PlyData
 from torch import Tensor
 
-from diamond_sss.data.conventions import project_points, srgb_to_linear
+from diamond_sss.data.conventions import project_points, sample_bilinear, srgb_to_linear
 
 logger = logging.getLogger(__name__)
 
@@ -197,14 +197,7 @@ def carve_visual_hull(
     for view in range(num_views):
         uv, z = project_points(points, w2c[view].float().to(device), K[view].float().to(device))
         in_image = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= width) & (uv[:, 1] >= 0) & (uv[:, 1] <= height)
-        normalised = torch.stack([2.0 * uv[:, 0] / width - 1.0, 2.0 * uv[:, 1] / height - 1.0], dim=-1)
-        sampled = F.grid_sample(
-            masks[view][None, None],
-            normalised[None, None],
-            mode="bilinear",
-            padding_mode="border",
-            align_corners=False,
-        )[0, 0, 0]
+        sampled = sample_bilinear(masks[view][None], uv[None])[0]
         seen += in_image.int()
         outside += (in_image & (sampled < mask_threshold)).int()
 

@@ -28,10 +28,9 @@ from dataclasses import dataclass
 from typing import Literal
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
-from diamond_sss.data.conventions import project_points, unproject_pixels
+from diamond_sss.data.conventions import project_points, sample_bilinear, unproject_pixels
 
 TargetMode = Literal["nearest-k", "random"]
 
@@ -143,21 +142,6 @@ def sample_foreground_pixels(mask: Tensor, num: int, generator: torch.Generator 
     return uv.to(mask.device)
 
 
-def _sample_bilinear(image: Tensor, uv: Tensor) -> Tensor:
-    """Bilinear lookup of ``image [P,H,W]`` at continuous pixel coordinates ``uv [P,n,2]`` -> ``[P,n]``.
-
-    ``grid_sample`` with ``align_corners=False``: normalised ``u / W * 2 - 1`` puts pixel centres
-    (``+0.5``) exactly on texels. Border padding.
-    """
-    height, width = image.shape[-2:]
-    scale = uv.new_tensor([2.0 / width, 2.0 / height])
-    grid = (uv * scale - 1.0).unsqueeze(1)
-    sampled = F.grid_sample(
-        image.unsqueeze(1), grid.to(image.dtype), mode="bilinear", padding_mode="border", align_corners=False
-    )
-    return sampled[:, 0, 0, :]
-
-
 def _valid_depth(depth: Tensor, alpha: Tensor, alpha_threshold: float) -> Tensor:
     return torch.isfinite(depth) & (depth > 0) & torch.isfinite(alpha) & (alpha >= alpha_threshold)
 
@@ -244,7 +228,7 @@ def multiview_losses_batched(
     z_tgt = torch.where(valid, z_tgt, torch.full_like(z_tgt, near + 0.5 * span))
 
     # Silhouette term: 1 - S_j(x'), the silhouette is a constant.
-    silhouette = _sample_bilinear(tgt_silhouette.detach().to(dtype), uv_tgt)
+    silhouette = sample_bilinear(tgt_silhouette.detach().to(dtype), uv_tgt)
     sil_residual = torch.where(valid, 1.0 - silhouette, torch.zeros_like(silhouette))
     n_silhouette = valid.sum()
     loss_silhouette = sil_residual.sum() / n_silhouette.clamp_min(1).to(dtype)
@@ -252,8 +236,8 @@ def multiview_losses_batched(
     # Depth term on the target's rendered depth (differentiable, sanitised so no NaN enters the graph).
     tgt_valid_map = _valid_depth(tgt_depth.detach(), tgt_alpha.detach(), cfg.alpha_threshold)
     tgt_depth_clean = torch.where(tgt_valid_map, tgt_depth, torch.zeros_like(tgt_depth))
-    footprint_valid = _sample_bilinear(tgt_valid_map.to(dtype), uv_tgt) >= _FOOTPRINT_VALID
-    d_tgt = _sample_bilinear(tgt_depth_clean, uv_tgt)
+    footprint_valid = sample_bilinear(tgt_valid_map.to(dtype), uv_tgt) >= _FOOTPRINT_VALID
+    d_tgt = sample_bilinear(tgt_depth_clean, uv_tgt)
     difference = (z_tgt - d_tgt) / span
     depth_valid = valid & footprint_valid & (silhouette >= cfg.sil_threshold)
     depth_valid = depth_valid & (difference.detach() <= cfg.occlusion_tol)
