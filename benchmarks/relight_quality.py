@@ -4,7 +4,9 @@ For each object (never one of the fine-tuning objects) and each view with severa
 the view's first light is relit to every other light and compared with the rendered ground truth:
 PSNR / SSIM on sRGB images in [0,1], full frame, black background. Baselines: the unchanged source image,
 and Lambertian re-shading from the stored normals (``diamond_sss.diffusion.relight.baselines``). The model
-and the Lambertian baseline use the same stored depth / normal maps (``--geometry maps``).
+and the Lambertian baseline use the same stored depth / normal maps (``--geometry maps``). The row ``hint``
+is the model's own input, the directional Lambertian shading hint (``diamond_sss.diffusion.relight.hint``),
+to show what the network adds to it.
 
     for spec in bunny:glazed_wax:11 blob:wax:12 torus:marble:13; do IFS=: read -r s m seed <<< "$spec"
       python -m diamond_sss.synth.cli --shape $s --material $m --seed $seed --out /tmp/relight_bench/${s}_${m} \\
@@ -25,10 +27,13 @@ from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.geometry import StoredMapsGeometry
 from diamond_sss.diffusion.relight.baselines import lambertian_relight
+from diamond_sss.diffusion.relight.conditioning import conditioning_image, model_to_image
+from diamond_sss.diffusion.relight.hint import lambertian_hint
 from diamond_sss.diffusion.relight.inference import load_model, relight_view
+from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.evaluation.metrics import image_metrics
 
-METHODS = ("model", "source", "lambertian")
+METHODS = ("model", "source", "lambertian", "hint")
 RESULTS = Path(__file__).resolve().parent / "results" / "relight_quality"
 
 
@@ -44,6 +49,18 @@ def evaluate_object(root: Path, model, steps: int, seed: int, cache: OutputCache
         source_light, targets = lights[0], lights[1:]
         source = dataset.load(dataset.observation_index(view, source_light))
         depth, normals = dataset.load_geometry_maps(view)
+        maps = geometry.maps(dataset, view, source.rgb, source.mask)
+        size = source.rgb.shape[0]
+        conditioning = conditioning_image(
+            source.rgb[None], maps.nearness[None], maps.normals[None], source.mask[None], size
+        ).expand(len(targets), -1, -1, -1)
+        bounds = dataset.bounds
+        codes = light_code(
+            dataset.light_positions,
+            dataset.viewmats[view].expand(dataset.num_lights, 4, 4),
+            bounds.center,
+            bounds.radius,
+        )
         predictions = {
             "model": [
                 r.rgb
@@ -62,6 +79,11 @@ def evaluate_object(root: Path, model, steps: int, seed: int, cache: OutputCache
                     dataset.intrinsics[view],
                     dataset.light_positions[source_light],
                     dataset.light_positions[targets],
+                )
+            ),
+            "hint": list(
+                model_to_image(
+                    lambertian_hint(conditioning, codes[targets], codes[[source_light] * len(targets)])
                 )
             ),
         }

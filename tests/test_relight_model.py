@@ -13,6 +13,7 @@ from diamond_sss.diffusion.common.sampling import SchedulerConfig, make_ddpm_sch
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, image_to_model, model_to_image
 from diamond_sss.diffusion.relight.config import RelightModelConfig
+from diamond_sss.diffusion.relight.hint import direction_from_code, lambertian_hint
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 
@@ -31,6 +32,7 @@ def random_inputs(batch: int = 2, size: int = 16, seed: int = 0):
         torch.randn(batch, 3, size, size, generator=g),
         torch.randint(0, 1000, (batch,), generator=g),
         torch.rand(batch, 8, size, size, generator=g) * 2 - 1,
+        torch.randn(batch, 10, generator=g),
         torch.randn(batch, 10, generator=g),
     )
 
@@ -88,10 +90,10 @@ def test_image_space_round_trip():
 
 def test_forward_and_sampling_shapes_are_seeded():
     model = tiny_model().eval()
-    x, t, cond, code = random_inputs()
-    assert model(x, t, cond, code).shape == x.shape
-    first = model.relight(cond, code, num_steps=3, generator=torch.Generator().manual_seed(7))
-    again = model.relight(cond, code, num_steps=3, generator=torch.Generator().manual_seed(7))
+    x, t, cond, code, src = random_inputs()
+    assert model(x, t, cond, code, src).shape == x.shape
+    first = model.relight(cond, code, src, num_steps=3, generator=torch.Generator().manual_seed(7))
+    again = model.relight(cond, code, src, num_steps=3, generator=torch.Generator().manual_seed(7))
     assert first.shape == (2, 3, 16, 16) and torch.equal(first, again)
     assert float(first.abs().max()) <= 1.0
     assert torch.equal(tiny_model(seed=0).unet.conv_in.weight, model.unet.conv_in.weight)
@@ -101,14 +103,14 @@ def test_forward_and_sampling_shapes_are_seeded():
 def test_light_code_reaches_the_output():
     model = tiny_model().eval()
     torch.nn.init.normal_(model.unet.conv_out.weight, std=0.1)
-    x, t, cond, code = random_inputs()
+    x, t, cond, code, src = random_inputs()
     with torch.no_grad():
-        assert not torch.allclose(model(x, t, cond, code), model(x, t, cond, code + 1.0))
+        assert not torch.allclose(model(x, t, cond, code, src), model(x, t, cond, code + 1.0, src))
 
 
 def test_source_light_option():
-    model = tiny_model(use_source_light=True).eval()
-    x, t, cond, code = random_inputs()
+    model = tiny_model(use_source_light=True, shading_hint=False, residual=False).eval()
+    x, t, cond, code, _ = random_inputs()
     assert model(x, t, cond, code, code).shape == x.shape
     with pytest.raises(ValueError, match="source light"):
         model(x, t, cond, code)
@@ -116,11 +118,11 @@ def test_source_light_option():
 
 def test_bad_inputs_have_clear_errors(tmp_path):
     model = tiny_model()
-    x, t, cond, code = random_inputs()
+    x, t, cond, code, src = random_inputs()
     with pytest.raises(ValueError, match="conditioning must be \\[B, 8"):
-        model(x, t, cond[:, :5], code)
+        model(x, t, cond[:, :5], code, src)
     with pytest.raises(ValueError, match="target_code must be"):
-        model(x, t, cond, code[:, :9])
+        model(x, t, cond, code[:, :9], src)
     with pytest.raises(FileNotFoundError, match="has no config.json"):
         RelightDiffusion.load(tmp_path / "missing")
     with pytest.raises(FileNotFoundError, match="not a diffusers Stable Diffusion folder"):
@@ -141,9 +143,9 @@ def test_save_load_round_trip(tmp_path):
     model = tiny_model().eval()
     model.save(tmp_path / "m")
     loaded = RelightDiffusion.load(tmp_path / "m")
-    x, t, cond, code = random_inputs()
+    x, t, cond, code, src = random_inputs()
     with torch.no_grad():
-        assert torch.equal(model(x, t, cond, code), loaded(x, t, cond, code))
+        assert torch.equal(model(x, t, cond, code, src), loaded(x, t, cond, code, src))
     assert loaded.weights_hash() == model.weights_hash()
     assert tiny_model(seed=3).weights_hash() != model.weights_hash()
 
@@ -180,12 +182,66 @@ def test_from_local_stable_diffusion_folder(tmp_path):
     assert torch.equal(model.unet.conv_in.weight, sd_unet.conv_in.weight)  # pretrained weights kept
     latent = model.encode(torch.zeros(1, 3, 16, 16))
     assert latent.shape == (1, 4, 8, 8) and model.sample_shape(1) == (1, 4, 8, 8)
-    _, _, cond, code = random_inputs(batch=1)
-    out = model.relight(cond, code, num_steps=2, generator=torch.Generator().manual_seed(0))
+    _, _, cond, code, src = random_inputs(batch=1)
+    out = model.relight(cond, code, src, num_steps=2, generator=torch.Generator().manual_seed(0))
     assert out.shape == (1, 3, 16, 16) and bool(torch.isfinite(out).all())
     model.save(tmp_path / "latent")
     with torch.no_grad():
         t = torch.tensor([5])
         assert torch.equal(
-            RelightDiffusion.load(tmp_path / "latent")(latent, t, cond, code), model(latent, t, cond, code)
+            RelightDiffusion.load(tmp_path / "latent")(latent, t, cond, code, src),
+            model(latent, t, cond, code, src),
         )
+
+
+def test_direction_from_code_inverts_the_light_code():
+    g = torch.Generator().manual_seed(4)
+    positions = torch.randn(50, 3, generator=g) * 3.0
+    center = torch.tensor([0.1, -0.2, 0.3])
+    w2c = camera_w2c([1.0, 2.0, 4.0]).float().expand(50, 4, 4)
+    direction, distance = direction_from_code(light_code(positions, w2c, center, 2.0))
+    offset = (w2c[:, :3, :3] @ (positions - center).unsqueeze(-1)).squeeze(-1)
+    assert torch.allclose(direction, torch.nn.functional.normalize(offset, dim=-1), atol=1e-5)
+    assert torch.allclose(distance[:, 0], offset.norm(dim=-1) / 2.0, atol=1e-5)
+
+
+def test_lambertian_hint_known_answer():
+    # A disc facing the camera (OpenCV normal (0, 0, -1)) of linear radiance 0.2 under a light at 60 degrees
+    # from the normal: relit by a light along the normal at the same distance, cos goes 0.5 -> 1, so 0.4.
+    size = 8
+    mask = torch.zeros(1, size, size, 1)
+    mask[:, 2:6, 2:6] = 1.0
+    normals = torch.tensor([0.0, 0.0, -1.0]).expand(1, size, size, 3) * mask
+    cond = conditioning_image(torch.full((1, size, size, 3), 0.2) * mask, mask, normals, mask, size)
+    w2c = torch.eye(4)[None]
+    at_60 = light_code(
+        torch.tensor([[math.sin(math.pi / 3), 0.0, -math.cos(math.pi / 3)]]) * 3.0, w2c, torch.zeros(3), 1.0
+    )
+    frontal = light_code(torch.tensor([[0.0, 0.0, -3.0]]), w2c, torch.zeros(3), 1.0)
+    hint = model_to_image(lambertian_hint(cond, frontal, at_60))
+    inside = mask[..., 0] > 0.5
+    assert torch.allclose(hint[inside], torch.full_like(hint[inside], 0.4), atol=1e-4)
+    assert float(hint[~inside].abs().max()) == 0.0
+    # Twice as far away: a quarter of the light.
+    far = light_code(torch.tensor([[0.0, 0.0, -6.0]]), w2c, torch.zeros(3), 1.0)
+    assert torch.allclose(
+        model_to_image(lambertian_hint(cond, far, at_60))[inside], torch.tensor(0.1), atol=1e-4
+    )
+
+
+def test_residual_model_adds_the_hint_back():
+    from dataclasses import replace
+
+    model = tiny_model().eval()
+    plain = RelightDiffusion(replace(model.config, residual=False), model.unet, model.controlnet).eval()
+    plain.light_tokens = model.light_tokens
+    _, _, cond, code, src = random_inputs(batch=2)
+    noise = torch.randn(model.sample_shape(2), generator=torch.Generator().manual_seed(2)) * 0.1
+    residual = model.relight(cond, code, src, num_steps=2, noise=noise)
+    direct = plain.relight(cond, code, src, num_steps=2, noise=noise)
+    hint = model.hint(cond, code, src)
+    unclamped = (residual.abs() < 0.99) & (direct.abs() < 0.99)
+    assert bool(unclamped.any())
+    assert torch.allclose((residual - direct)[unclamped], hint[unclamped], atol=1e-5)
+    with pytest.raises(ValueError, match="needs shading_hint"):
+        tiny_config(shading_hint=False)

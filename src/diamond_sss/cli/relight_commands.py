@@ -18,6 +18,7 @@ def finetune_relight(
     data: list[Path] | None = None,
     resolution: int = 64,
     use_source_light: bool = False,
+    shading_hint: bool = True,
     lpips_weights: str | None = None,
     mixed_precision: str = "no",
     time_limit_s: float | None = None,
@@ -41,6 +42,7 @@ def finetune_relight(
         data: data folders to use instead of the embedded fine-tuning objects.
         resolution: model resolution in pixels (pixel-space default model: 64).
         use_source_light: also condition on the source light's code.
+        shading_hint: give the ControlNet the Lambertian shading hint and denoise the residual from it.
         lpips_weights: LPIPS (VGG) weights in safetensors; the LPIPS term is skipped without them.
         mixed_precision: no | fp16 | bf16 (GPU only).
         time_limit_s: stop after this much wall time (checkpoint and weights are written).
@@ -54,7 +56,12 @@ def finetune_relight(
     from diamond_sss.diffusion.relight.train import RelightTrainConfig, finetune
     from diamond_sss.losses.lpips import load_lpips
 
-    model_config = RelightModelConfig(resolution=resolution, use_source_light=use_source_light)
+    model_config = RelightModelConfig(
+        resolution=resolution,
+        use_source_light=use_source_light,
+        shading_hint=shading_hint,
+        residual=shading_hint,
+    )
     if init is not None:
         model = RelightDiffusion.load(init)
     elif pretrained_sd is not None:

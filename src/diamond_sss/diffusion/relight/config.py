@@ -10,7 +10,10 @@ LIGHT_CODE_DIM = 10
 """9 SH coefficients (degree 2) of the light direction in the source camera frame + the light distance."""
 
 CONDITIONING_CHANNELS = 8
-"""Source image (3), depth (1), camera-space normals (3), mask (1)."""
+"""Source image (3), depth (1), camera-space normals (3), mask (1): what callers give the model."""
+
+HINT_CHANNELS = 3
+"""The shading hint (``hint.py``) the model appends to the conditioning image when ``shading_hint`` is on."""
 
 
 @dataclass(frozen=True)
@@ -27,6 +30,9 @@ class RelightModelConfig:
         cross_attention_dim: width of the light tokens the cross-attention layers read.
         light_tokens: number of cross-attention tokens made from the light code(s).
         use_source_light: also give the source light's code (timestep embedding and tokens).
+        shading_hint: append the directional Lambertian re-shading (``hint.py``) to the ControlNet's input.
+        residual: denoise ``target - hint`` (in the denoised space) instead of the target itself, so the
+            network learns the correction to Lambertian shading; needs ``shading_hint``.
         norm_num_groups: GroupNorm groups.
         scheduler: training noise schedule (v-prediction).
     """
@@ -40,6 +46,8 @@ class RelightModelConfig:
     cross_attention_dim: int = 64
     light_tokens: int = 4
     use_source_light: bool = False
+    shading_hint: bool = True
+    residual: bool = True
     norm_num_groups: int = 8
     scheduler: SchedulerConfig = field(default_factory=SchedulerConfig)
 
@@ -56,6 +64,10 @@ class RelightModelConfig:
                 f"attention_levels must be in [1, {len(self.block_out_channels)}], "
                 f"got {self.attention_levels}"
             )
+        if self.residual and not self.shading_hint:
+            raise ValueError(
+                "residual=True denoises the offset from the shading hint: it needs shading_hint=True"
+            )
         if self.scheduler.prediction_type != "v_prediction":
             raise ValueError("the relighting model is trained with v-prediction")
 
@@ -63,6 +75,11 @@ class RelightModelConfig:
     def light_input_dim(self) -> int:
         """Length of the code fed to the timestep embedding and the token MLP."""
         return LIGHT_CODE_DIM * (2 if self.use_source_light else 1)
+
+    @property
+    def controlnet_channels(self) -> int:
+        """Channels of the ControlNet's conditioning image (the callers' 8, plus the hint when used)."""
+        return CONDITIONING_CHANNELS + (HINT_CHANNELS if self.shading_hint else 0)
 
     def to_dict(self) -> dict:
         out = asdict(self)

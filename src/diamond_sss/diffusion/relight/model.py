@@ -3,7 +3,9 @@
 The light code (``light.py``) enters (1) the timestep embedding of the UNet and of the ControlNet through
 diffusers' ``class_embed_type="projection"`` (``emb = time_mlp(t) + light_mlp(code)``) and (2) every
 cross-attention layer as ``light_tokens`` tokens made by a small MLP. The 8-channel conditioning image
-(source, depth, normals, mask) enters the ControlNet. The UNet predicts ``v`` (v-parameterisation).
+(source, depth, normals, mask), with the shading hint ``h`` (``hint.py``) appended when configured, enters the
+ControlNet. The UNet predicts ``v`` (v-parameterisation) of the denoised variable ``x = E(target) - E(h)``
+with ``residual`` (``E`` the encoder: identity in pixel space, the VAE in latent space), else ``E(target)``.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from torch import Tensor, nn
 from diamond_sss.diffusion.common.hashing import state_dict_hash
 from diamond_sss.diffusion.common.sampling import ddim_sample, make_ddim_scheduler, make_ddpm_scheduler
 from diamond_sss.diffusion.relight.config import CONDITIONING_CHANNELS, RelightModelConfig
+from diamond_sss.diffusion.relight.hint import lambertian_hint
 from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
 
 WEIGHTS_NAME = "model.safetensors"
@@ -92,7 +95,9 @@ class RelightDiffusion(nn.Module):
                 projection_class_embeddings_input_dim=config.light_input_dim,
             )
             controlnet = ControlNetModel.from_unet(
-                unet, conditioning_channels=CONDITIONING_CHANNELS, conditioning_embedding_out_channels=(16,)
+                unet,
+                conditioning_channels=config.controlnet_channels,
+                conditioning_embedding_out_channels=(16,),
             )
             return cls(config, unet, controlnet)
 
@@ -137,7 +142,7 @@ class RelightDiffusion(nn.Module):
             embedding = tuple(16 * 2**i for i in range(factor.bit_length()))
             controlnet = ControlNetModel.from_unet(
                 unet,
-                conditioning_channels=CONDITIONING_CHANNELS,
+                conditioning_channels=config.controlnet_channels,
                 conditioning_embedding_out_channels=embedding,
             )
             return cls(config, unet, controlnet, vae)
@@ -229,6 +234,20 @@ class RelightDiffusion(nn.Module):
             raise ValueError("this model also needs the source light's code, shaped like target_code")
         return torch.cat([target_code, source_code], dim=-1)
 
+    def hint(self, conditioning: Tensor, target_code: Tensor, source_code: Tensor | None) -> Tensor:
+        """The shading hint ``[B,3,R,R]`` in model space (``hint.py``); it needs the source light's code."""
+        if source_code is None or source_code.shape != target_code.shape:
+            raise ValueError(
+                "the shading hint needs the source light's code, shaped like target_code [B, 10]"
+            )
+        return lambertian_hint(conditioning, target_code, source_code)
+
+    def offset(self, conditioning: Tensor, target_code: Tensor, source_code: Tensor | None) -> Tensor | None:
+        """``E(hint)``, what the denoised variable is measured from with ``residual``; ``None`` without."""
+        if not self.config.residual:
+            return None
+        return self.encode(self.hint(conditioning, target_code, source_code))
+
     def forward(
         self,
         noisy: Tensor,
@@ -246,6 +265,8 @@ class RelightDiffusion(nn.Module):
                 f"conditioning must be [B, {CONDITIONING_CHANNELS}, H, W], got {tuple(conditioning.shape)}"
             )
         code = self.light_input(target_code, source_code)
+        if self.config.shading_hint:
+            conditioning = torch.cat([conditioning, self.hint(conditioning, target_code, source_code)], dim=1)
         tokens = self.light_tokens(code)
         down, mid = self.controlnet(
             noisy,
@@ -274,7 +295,8 @@ class RelightDiffusion(nn.Module):
         generator: torch.Generator | None = None,
         noise: Tensor | None = None,
     ) -> Tensor:
-        """DDIM (eta 0) sample of the relit image in model space ``[B,3,R,R]``.
+        """DDIM (eta 0) sample of the relit image in model space ``[B,3,R,R]`` (the hint added back with
+        ``residual``).
 
         The initial noise is ``noise`` (shape :meth:`sample_shape`) or drawn from ``generator``.
         """
@@ -289,7 +311,8 @@ class RelightDiffusion(nn.Module):
             device,
             noise=noise,
         )
-        return self.decode(sample).clamp(-1.0, 1.0)
+        offset = self.offset(conditioning, target_code, source_code)
+        return self.decode(sample if offset is None else sample + offset).clamp(-1.0, 1.0)
 
 
 def _public(config: dict) -> dict:

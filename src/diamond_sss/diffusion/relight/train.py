@@ -76,7 +76,10 @@ def training_loss(
     Timesteps and noise come from ``generator`` (CPU) and are moved to the batch's device.
     """
     device = batch["target"].device
+    offset = model.offset(batch["conditioning"], batch["target_code"], batch["source_code"])
     target = model.encode(batch["target"])
+    if offset is not None:
+        target = target - offset
     count = target.shape[0]
     alphas = model.alphas_cumprod
     timesteps = torch.randint(0, alphas.shape[0], (count,), generator=generator).to(device)
@@ -84,18 +87,26 @@ def training_loss(
     noisy = model.train_scheduler.add_noise(target, noise, timesteps)
     v = model(noisy, timesteps, batch["conditioning"], batch["target_code"], batch["source_code"])
     terms = {"v_mse": (v.float() - v_target(target, noise, alphas, timesteps)).square().mean()}
-    clean = model.decode(predicted_clean(noisy, v.float(), alphas, timesteps))
+    clean = model.decode(with_offset(predicted_clean(noisy, v.float(), alphas, timesteps), offset))
     terms.update(image_losses(clean, batch["target"], weights, lpips))
     if with_cycle:
         back_conditioning = torch.cat([clean, batch["maps"]], dim=1)
-        source = model.encode(batch["source"])
+        back_offset = model.offset(back_conditioning, batch["source_code"], batch["target_code"])
+        source = with_offset(model.encode(batch["source"]), back_offset, sign=-1.0)
         back_noise = torch.randn(source.shape, generator=generator).to(device=device, dtype=source.dtype)
         back_noisy = model.train_scheduler.add_noise(source, back_noise, timesteps)
         back_v = model(back_noisy, timesteps, back_conditioning, batch["source_code"], batch["target_code"])
-        back_clean = model.decode(predicted_clean(back_noisy, back_v.float(), alphas, timesteps))
+        back_clean = model.decode(
+            with_offset(predicted_clean(back_noisy, back_v.float(), alphas, timesteps), back_offset)
+        )
         terms["cycle"] = (back_clean - batch["source"]).abs().mean()
     total = sum(getattr(weights, name) * value for name, value in terms.items())
     return total, {name: float(value.detach()) for name, value in terms.items()}
+
+
+def with_offset(sample: Tensor, offset: Tensor | None, sign: float = 1.0) -> Tensor:
+    """``sample + sign * offset`` (``sample`` itself when the model is not residual)."""
+    return sample if offset is None else sample + sign * offset
 
 
 def lr_factor(step: int, warmup: int, total: int) -> float:
