@@ -12,7 +12,7 @@ from diamond_sss.cli.demo import demo
 from diamond_sss.cli.nvs_commands import finetune_nvs, nvs
 from diamond_sss.cli.pipeline_commands import run
 from diamond_sss.cli.relight_commands import finetune_relight, relight
-from diamond_sss.cli.train_commands import ablate, evaluate, export, render, train
+from diamond_sss.cli.train_commands import ablate, evaluate, export, render, train, view
 from diamond_sss.cli.tune_commands import tune
 from diamond_sss.data.errors import DataError
 from diamond_sss.diffusion.geometry.base import GeometryError
@@ -23,7 +23,7 @@ def commands() -> dict[str, Callable[..., None]]:
     from diamond_sss.synth.cli import synth
 
     return {"demo": demo, "info": info, "regimes": regimes, "synth": synth, "train": train, "eval": evaluate,
-            "render": render, "export": export, "ablate": ablate, "run": run, "tune": tune,
+            "render": render, "export": export, "view": view, "ablate": ablate, "run": run, "tune": tune,
             "finetune-relight": finetune_relight, "relight": relight, "finetune-nvs": finetune_nvs, "nvs": nvs}
 
 

@@ -133,6 +133,21 @@ def export(run: Path, ply: Path) -> None:
     Console().print(f"{scene.gaussians.num_gaussians} Gaussians -> {ply}")
 
 
+def view(run: Path, port: int = 8080, host: str = "0.0.0.0", resolution: int = 256, device: str = "auto") -> None:
+    """Open a trained scene in the web viewer (viser): orbit it, move the light, show maps, edit materials.
+
+    Args:
+        run: training run folder.
+        port: port of the web server (open http://localhost:PORT in a browser).
+        host: interface to listen on.
+        resolution: initial image height of the rendered frames (pixels; a slider changes it).
+        device: auto | cpu | cuda.
+    """
+    from diamond_sss.viewer.server import serve
+
+    serve(run, host=host, port=port, resolution=resolution, device=device)
+
+
 def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5%,lights=5%", "views=3%,lights=3%"],  # noqa: B006
            variants: list[str] = ["sss3dgs", "diamond-no-mv", "+silhouette", "+depth", "+both"],  # noqa: B006
            iterations: int = 400, set_: SetArg = [], seed: int = 0, quiet: bool = False) -> None:  # noqa: B006

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from torch import Tensor
 from tqdm.auto import tqdm
 
 from diamond_sss.data.dataset import OLATDataset
@@ -90,18 +91,23 @@ def save_comparison_figure(path: Path, scene: RelightableScene, dataset: OLATDat
 
 
 @torch.no_grad()
-def save_decomposition_figure(path: Path, scene: RelightableScene, dataset: OLATDataset, index: int) -> Path:
-    """The G-buffer and shading terms of one observation: base colour, normal, ..., visibility."""
-    device = next(scene.parameters()).device
-    render = render_observation(scene, dataset, index, device)
+def decomposition_maps(render: SceneRender) -> dict[str, tuple[Tensor, bool]]:
+    """The :data:`DECOMPOSITION` maps of a render, ``name -> (image [B,H,W,C], is linear radiance)``."""
     gb, sh = render.gbuffer, render.shading
-    maps = {
+    return {
         "base_color": (gb.base_color, False), "normal": ((gb.normal * 0.5 + 0.5) * gb.alpha, False),
         "roughness": (gb.roughness, False), "metallic": (gb.metallic, False),
         "subsurface": (gb.subsurface, False), "diffuse": (sh.diffuse, True), "specular": (sh.specular, True),
         "residual": (sh.residual, True), "incident": (gb.incident.clamp(0, 1), False),
         "visibility": (gb.visibility, False),
     }
+
+
+def save_decomposition_figure(path: Path, scene: RelightableScene, dataset: OLATDataset, index: int) -> Path:
+    """The G-buffer and shading terms of one observation: base colour, normal, ..., visibility."""
+    device = next(scene.parameters()).device
+    render = render_observation(scene, dataset, index, device)
+    maps = decomposition_maps(render)
     images = [to_display(maps[name][0][0], linear=maps[name][1]) for name in DECOMPOSITION]
     radiance = to_display(render.radiance[0])
     return save_image_grid(path, [[radiance] + images[:5], images[5:]],
