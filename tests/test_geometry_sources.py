@@ -57,6 +57,13 @@ def test_stored_maps_face_the_camera(view_sample):
     assert float(maps.nearness.max()) == pytest.approx(1.0)
 
 
+def test_stored_maps_carry_metric_depth(view_sample):
+    dataset, view, rgb, mask = view_sample
+    maps = StoredMapsGeometry().maps(dataset, view, rgb, mask)
+    torch.testing.assert_close(maps.depth, dataset.load_geometry_maps(view)[0])
+    assert float(maps.depth.max()) > 0
+
+
 def test_stored_maps_missing_raise(view_sample, tmp_path):
     _, view, rgb, mask = view_sample
     root = embedded_dataset("finetune/torus_jade")
@@ -160,6 +167,7 @@ def test_tiny_depth_anything_wiring(view_sample, tiny_depth_anything):
     source.input_size = 28
     maps = source.maps(dataset, view, rgb, mask)
     check_maps(maps, mask)
+    assert maps.depth is None  # relative depth only: no warp hint from it
     assert source.key()["hash"] == DepthAnythingGeometry(tiny_depth_anything).key()["hash"]
 
 

@@ -7,12 +7,15 @@ import json
 import imageio.v3 as iio
 import pytest
 import torch
-from tiny_models import TINY_NVS as TINY
+from tiny_models import TINY_NVS
 
 from diamond_sss.cli.nvs_commands import nvs
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.diffusion.nvs import pipeline
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
+
+TINY = {**TINY_NVS, "warp_hint": False}
+"""The base model (no warp hint); the hint is tested in test_nvs_warp.py."""
 
 
 @pytest.fixture(scope="module")

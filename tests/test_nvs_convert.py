@@ -136,6 +136,7 @@ def tiny_free3d_config() -> NVSConfig:
         norm_num_groups=8,
         cross_attention_dim=CTX,
         embed_dim=CTX - 4,
+        warp_hint=False,
     )
 
 

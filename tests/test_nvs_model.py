@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from tiny_models import TINY_NVS as TINY
+from tiny_models import TINY_NVS
 
 from diamond_sss.data.conventions import (
     intrinsics_from_fov,
@@ -23,6 +23,9 @@ from diamond_sss.diffusion.nvs.rays import (
     relative_spherical_pose,
     view_angle_degrees,
 )
+
+TINY = {**TINY_NVS, "warp_hint": False}
+"""The base model (no warp hint); the hint is tested in test_nvs_warp.py."""
 
 
 def camera(azimuth: float, elevation: float = 0.3, radius: float = 4.0) -> torch.Tensor:
@@ -262,7 +265,7 @@ def test_ddim_sampling_with_an_oracle_denoiser_recovers_the_clean_views():
     clean = torch.rand(2, 4, 16, 16) * 2 - 1
     alphas = make_sample_scheduler(model.config).alphas_cumprod
 
-    def oracle(noisy, timesteps, reference, context, rays, num_views):
+    def oracle(noisy, timesteps, reference, context, rays, num_views, hint=None):
         a = alphas[timesteps].reshape(-1, 1, 1, 1)
         return (noisy - a.sqrt() * clean.repeat(noisy.shape[0] // 2, 1, 1, 1)) / (1 - a).sqrt()
 

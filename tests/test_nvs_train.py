@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import pytest
 import torch
-from tiny_models import TINY_NVS as TINY
+from tiny_models import TINY_NVS
 
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.diffusion.nvs.train import FinetuneConfig, finetune
 from diamond_sss.utils.io import load_safetensors
+
+TINY = {**TINY_NVS, "warp_hint": False}
+"""The base model (no warp hint); the hint is tested in test_nvs_warp.py."""
 
 
 @pytest.fixture(scope="module")

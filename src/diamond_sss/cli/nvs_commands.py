@@ -18,6 +18,7 @@ def finetune_nvs(
     image_size: int = 32,
     space: str = "pixel",
     prediction_type: str = "epsilon",
+    warp_hint: bool | None = None,
     vae: Path | None = None,
     gradient_checkpointing: bool = True,
     checkpoint_every: int = 200,
@@ -39,6 +40,8 @@ def finetune_nvs(
         image_size: side of the generated images (pixels; latent space: 8x the latent side).
         space: pixel (small offline default) or latent (needs --vae).
         prediction_type: epsilon (Free3D's objective) or v_prediction (steadier for small pixel models).
+        warp_hint: feed the reference forward-warped with its stored depth maps (default: on in pixel space;
+            pixel space only).
         vae: local diffusers AutoencoderKL folder for latent space.
         gradient_checkpointing: recompute activations of every ResNet/transformer block in the backward pass.
         checkpoint_every: steps between atomic checkpoints.
@@ -59,6 +62,7 @@ def finetune_nvs(
         image_size=image_size,
         vae_path=None if vae is None else str(vae),
         prediction_type=prediction_type,
+        warp_hint=space == "pixel" if warp_hint is None else warp_hint,
     )
     config = FinetuneConfig(
         steps=steps,
@@ -89,6 +93,7 @@ def nvs(
     seed: int = 0,
     cache: Path | None = None,
     device: str = "cpu",
+    geometry: str | None = None,
 ) -> None:
     """Generate novel views of an object under a fixed light from one reference image (Free3D-style model).
 
@@ -109,7 +114,10 @@ def nvs(
         seed: seed of the shared initial noise.
         cache: cache folder (default $DIAMOND_SSS_CACHE/nvs or ~/.cache/diamond_sss/nvs).
         device: cpu or cuda.
+        geometry: metric depth of the reference for models with the warp hint: a reconstruction run folder
+            (holding model.safetensors) or 'maps' (depth maps stored with the data).
     """
+    from diamond_sss.diffusion.geometry import geometry_source
     from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
 
     manifest = generate_novel_views(
@@ -125,5 +133,6 @@ def nvs(
         seed=seed,
         cache_dir=cache,
         device=device,
+        geometry=None if geometry is None else geometry_source(geometry, device=device, seed=seed),
     )
     Console().print(f"novel views -> {manifest}")

@@ -221,8 +221,10 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
         targets = spread_subset(missing, view_dirs, cfg.nvs_views, seed)
 
         def nvs_stage() -> dict:
+            from diamond_sss.diffusion.geometry.sources import RenderedGeometry
             from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
 
+            geometry = RenderedGeometry(prelim_dir, device=cfg.device)
             calls = 0
             for light in sorted(real_lights):
                 sources = [v for v in sorted(real_views) if bool(real.presence[v, light])]
@@ -237,7 +239,7 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
                                          ",".join(str(v) for v in group), split=split, model_dir=cfg.nvs_model,
                                          steps=cfg.diffusion_steps, guidance_scale=cfg.guidance_scale, seed=seed,
                                          cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
-                                         device=cfg.device)
+                                         device=cfg.device, geometry=geometry)
                     calls += 1
             return {"targets": len(targets), "calls": calls}
 

@@ -24,11 +24,14 @@ class GeometryMaps:
         nearness: normalised nearness ``[H,W,1]`` in [0, 1] over the mask (1 = nearest, 0 outside).
         normals: unit normals ``[H,W,3]`` in the OpenCV camera frame (x right, y down, z forward); 0 outside.
         mask: object mask ``[H,W,1]`` in [0, 1].
+        depth: metric camera z ``[H,W,1]`` in world units (0 = background), or None for sources that only
+            know relative depth (Depth Anything, Marigold).
     """
 
     nearness: Tensor
     normals: Tensor
     mask: Tensor
+    depth: Tensor | None = None
 
 
 class GeometrySource(ABC):

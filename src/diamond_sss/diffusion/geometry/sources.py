@@ -1,4 +1,7 @@
-"""The four geometry sources: stored maps, a Gaussian reconstruction, Depth Anything v2, Marigold normals."""
+"""The four geometry sources: stored maps, a Gaussian reconstruction, Depth Anything v2, Marigold normals.
+
+Only the first two know metric depth (:attr:`GeometryMaps.depth`); the monocular models give relative depth.
+"""
 
 from __future__ import annotations
 
@@ -31,7 +34,7 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 def _camera_maps(depth: Tensor, normals_world: Tensor, mask: Tensor, w2c: Tensor) -> GeometryMaps:
     keep = (mask > 0.5).to(depth.dtype)
     normals = world_to_camera_normals(normals_world[None], w2c[None])[0] * keep
-    return GeometryMaps(nearness=depth_to_nearness(depth, mask), normals=normals, mask=mask)
+    return GeometryMaps(nearness=depth_to_nearness(depth, mask), normals=normals, mask=mask, depth=depth)
 
 
 def _require_dir(path: Path, what: str) -> Path:

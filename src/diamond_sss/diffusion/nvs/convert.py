@@ -69,6 +69,7 @@ def free3d_config(image_size: int = 256, vae_path: str | None = None) -> NVSConf
         norm_num_groups=32,
         cross_attention_dim=768,
         embed_dim=768,
+        warp_hint=False,
     )
 
 

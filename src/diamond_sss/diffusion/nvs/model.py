@@ -1,7 +1,9 @@
 """Free3D-style novel-view diffusion model: a ray-conditioned, multi-view ``UNet2DConditionModel``.
 
 Inputs per object: one reference image with its camera and ``V`` target cameras. The denoiser sees the noisy
-target views concatenated with the reference (``2C`` input channels), a context token
+target views concatenated with the reference (``2C`` input channels) and, with ``warp_hint``, the reference
+forward-warped into each target camera with its metric depth plus the warp's validity (``+5`` channels, see
+:mod:`~diamond_sss.diffusion.nvs.warp`; pixel space only), a context token
 ``proj([embed(reference), relative pose])`` for cross-attention, per-pixel Plucker rays in every ResNet block
 and attention across the ``V`` views. All views of an object share one timestep in training and one noise
 sample at sampling time. Space: ``pixel`` (RGBA in ``[-1, 1]``, the small offline default) or ``latent``
@@ -22,6 +24,7 @@ from torch import Tensor, nn
 from diamond_sss.data.conventions import scale_intrinsics
 from diamond_sss.diffusion.nvs.layers import ConditioningSlot, graft_free3d_layers, set_layer_checkpointing
 from diamond_sss.diffusion.nvs.rays import RELATIVE_POSE_CHANNELS, ray_embedding, relative_spherical_pose
+from diamond_sss.diffusion.nvs.warp import WARP_CHANNELS, forward_warp, resize_depth
 from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
 
 CONFIG_NAME = "config.json"
@@ -33,7 +36,9 @@ class NVSConfig:
     """Architecture and noise schedule of the novel-view model.
 
     ``beta_schedule="scaled_linear"`` is the LDM/Free3D "linear" schedule (betas linear in sqrt space,
-    ``0.00085 -> 0.012`` over 1000 steps).
+    ``0.00085 -> 0.012`` over 1000 steps). ``warp_hint`` adds the geometric warp hint to the UNet input
+    (pixel space only); its reference image and depth are used at ``warp_supersample`` times the image size,
+    so surfaces magnified by the new view leave no cracks.
     """
 
     space: str = "pixel"
@@ -57,6 +62,8 @@ class NVSConfig:
     beta_schedule: str = "scaled_linear"
     prediction_type: str = "epsilon"
     condition_dropout: float = 0.05
+    warp_hint: bool = True
+    warp_supersample: int = 2
 
     def __post_init__(self) -> None:
         if self.space not in ("pixel", "latent"):
@@ -65,6 +72,10 @@ class NVSConfig:
             raise ValueError(
                 f"prediction_type must be 'epsilon' or 'v_prediction', got {self.prediction_type!r}"
             )
+        if self.warp_hint and self.space != "pixel":
+            raise ValueError("warp_hint is a pixel-space hint: use space='pixel' or warp_hint=False")
+        if self.warp_supersample < 1:
+            raise ValueError(f"warp_supersample must be >= 1, got {self.warp_supersample}")
         if self.space == "latent" and self.image_size % 8:
             raise ValueError(f"latent space needs an image size divisible by 8, got {self.image_size}")
         for name in ("block_out_channels", "down_block_types", "up_block_types", "encoder_channels"):
@@ -80,13 +91,24 @@ class NVSConfig:
         """Spatial side of what the UNet denoises."""
         return self.image_size // 8 if self.space == "latent" else self.image_size
 
+    @property
+    def input_channels(self) -> int:
+        """UNet input channels: noisy target, reference and (with ``warp_hint``) warped RGBA + validity."""
+        return 2 * self.model_channels + (WARP_CHANNELS if self.warp_hint else 0)
+
+    @property
+    def warp_source_size(self) -> int:
+        """Side of the reference image and depth map the warp hint is splatted from."""
+        return self.image_size * self.warp_supersample
+
     @classmethod
     def from_dict(cls, data: dict) -> NVSConfig:
+        """Config from ``config.json``; files written before the warp hint existed have ``warp_hint=False``."""
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"unknown NVS config keys {unknown}")
-        return cls(**data)
+        return cls(**{"warp_hint": False, **data})
 
 
 class ReferenceEncoder(nn.Module):
@@ -143,7 +165,8 @@ class NVSBatch:
     """One batch of objects. Images are RGBA, linear premultiplied colour and alpha in ``[0, 1]``.
 
     ``reference [B,4,H,W]``, ``targets [B,V,4,H,W]`` (None at sampling), ``reference_w2c [B,4,4]``,
-    ``target_w2c [B,V,4,4]``, ``target_K [B,V,3,3]`` pixel intrinsics of the ``H x W`` images.
+    ``target_w2c [B,V,4,4]``, ``target_K [B,V,3,3]`` pixel intrinsics of the ``H x W`` images. The warp hint
+    needs ``reference_K [B,3,3]`` and ``reference_depth [B,1,H,W]`` (metric camera z, 0 = background).
     """
 
     reference: Tensor
@@ -151,6 +174,8 @@ class NVSBatch:
     target_w2c: Tensor
     target_K: Tensor
     targets: Tensor | None = None
+    reference_K: Tensor | None = None
+    reference_depth: Tensor | None = None
 
     def validate(self) -> None:
         b = self.reference.shape[0]
@@ -166,6 +191,13 @@ class NVSBatch:
             raise ValueError(
                 f"targets {tuple(self.targets.shape)} do not match cameras {tuple(self.target_w2c.shape)}"
             )
+        if self.reference_K is not None and self.reference_K.shape != (b, 3, 3):
+            raise ValueError(f"reference_K must be [B,3,3], got {tuple(self.reference_K.shape)}")
+        size = self.reference.shape[-2:]
+        if self.reference_depth is not None and self.reference_depth.shape != (b, 1, *size):
+            raise ValueError(
+                f"reference_depth must be [B,1,H,W] like the reference, got {tuple(self.reference_depth.shape)}"
+            )
 
 
 class NVSModel(nn.Module):
@@ -177,7 +209,7 @@ class NVSModel(nn.Module):
         c = config.model_channels
         self.unet = UNet2DConditionModel(
             sample_size=config.model_size,
-            in_channels=2 * c,
+            in_channels=config.input_channels,
             out_channels=c,
             block_out_channels=config.block_out_channels,
             down_block_types=config.down_block_types,
@@ -251,6 +283,42 @@ class NVSModel(nn.Module):
         pose = relative_spherical_pose(batch.target_w2c, ref).flatten(0, 1)
         return rays.to(reference_model.dtype), pose.to(reference_model.dtype)
 
+    def warp_hint(self, batch: NVSBatch) -> Tensor | None:
+        """Warped reference (model space) and validity ``[B*V,5,s,s]``, or None without ``warp_hint``.
+
+        The reference and its depth are resized to ``warp_source_size`` (area / min-pooling), splatted with a
+        2x2 bilinear footprint into the targets at the model size; invalid pixels read as background.
+        """
+        if not self.config.warp_hint:
+            return None
+        if batch.reference_K is None or batch.reference_depth is None:
+            raise ValueError(
+                "this novel-view model uses the warp hint: the batch needs reference_K and reference_depth "
+                "(metric camera z of the reference view)"
+            )
+        source = self.config.warp_source_size
+        factor = source / batch.reference.shape[-1]
+        reference = batch.reference
+        if reference.shape[-2:] != (source, source):
+            reference = F.interpolate(reference, size=(source, source), mode="area")
+        depth = resize_depth(batch.reference_depth, source)
+        ref_K = scale_intrinsics(batch.reference_K, factor)
+        size = self.config.image_size
+        target_K = scale_intrinsics(batch.target_K, size / batch.reference.shape[-1])
+        hints = []
+        for i in range(reference.shape[0]):
+            warped, valid = forward_warp(
+                reference[i],
+                depth[i],
+                batch.reference_w2c[i],
+                ref_K[i],
+                batch.target_w2c[i],
+                target_K[i],
+                size,
+            )
+            hints.append(torch.cat([warped * 2 - 1, valid], dim=1))
+        return torch.cat(hints)
+
     def context(self, image_embedding: Tensor, pose: Tensor, drop_image: Tensor) -> Tensor:
         """Context token ``proj([embedding or null, pose])``, ``[N,1,D]``; ``drop_image [N]`` bool."""
         emb = torch.where(
@@ -266,13 +334,13 @@ class NVSModel(nn.Module):
         context: Tensor,
         rays: Tensor,
         num_views: int,
+        hint: Tensor | None = None,
     ) -> Tensor:
         """UNet prediction for ``noisy [B*V,C,h,w]`` (views of an object contiguous)."""
         self.slot.rays, self.slot.num_views = rays, num_views
+        inputs = [noisy, reference] if hint is None else [noisy, reference, hint]
         try:
-            return self.unet(
-                torch.cat([noisy, reference], dim=1), timesteps, encoder_hidden_states=context
-            ).sample
+            return self.unet(torch.cat(inputs, dim=1), timesteps, encoder_hidden_states=context).sample
         finally:
             self.slot.rays, self.slot.num_views = None, 1
 
@@ -286,7 +354,8 @@ class NVSModel(nn.Module):
         """Free3D objective: MSE of the predicted noise, one timestep per object, condition dropout.
 
         Dropout (probability ``p``): image embedding dropped when ``u < 2p``, reference image and rays
-        dropped when ``p <= u < 3p`` (both for ``p <= u < 2p``), as in Free3D.
+        dropped when ``p <= u < 3p`` (both for ``p <= u < 2p``), as in Free3D; the warp hint drops with the
+        reference image.
         """
         batch.validate()
         if batch.targets is None:
@@ -297,6 +366,7 @@ class NVSModel(nn.Module):
         with torch.no_grad():
             target = self.encode(batch.targets.flatten(0, 1))
             reference = self.encode(batch.reference)
+            hint = self.warp_hint(batch)
         t = torch.randint(0, scheduler.config.num_train_timesteps, (b,), generator=generator, device=device)
         t = t.repeat_interleave(v)
         noise = torch.randn(target.shape, generator=generator, device=device)
@@ -310,7 +380,9 @@ class NVSModel(nn.Module):
         context = self.context(embedding, pose, drop_image)
         ref = reference.repeat_interleave(v, dim=0) * keep_input[:, None, None, None]
         rays = rays * keep_input[:, None, None, None]
-        pred = self.denoise(noisy, t, ref, context, rays, v)
+        if hint is not None:
+            hint = hint * keep_input[:, None, None, None]
+        pred = self.denoise(noisy, t, ref, context, rays, v, hint)
         if self.config.prediction_type == "epsilon":
             goal = noise
         else:
@@ -329,7 +401,8 @@ class NVSModel(nn.Module):
         """Generate the target views, ``[B,V,4,H,W]`` RGBA in ``[0, 1]`` at the model's image size.
 
         One initial noise per object, shared by its views; DDIM (``eta = 0``) with classifier-free guidance
-        ``eps = eps_u + s (eps_c - eps_u)`` where the unconditional branch drops image, reference and rays.
+        ``eps = eps_u + s (eps_c - eps_u)`` where the unconditional branch drops image, reference, rays and
+        warp hint.
         """
         batch.validate()
         if num_steps < 1:
@@ -337,6 +410,7 @@ class NVSModel(nn.Module):
         b, v = batch.target_w2c.shape[:2]
         device = batch.reference.device
         reference = self.encode(batch.reference)
+        hint = self.warp_hint(batch)
         rays, pose = self.conditioning(batch, reference)
         embedding = self.reference_encoder(reference).repeat_interleave(v, dim=0)
         ref = reference.repeat_interleave(v, dim=0)
@@ -349,6 +423,8 @@ class NVSModel(nn.Module):
             cond = torch.cat([cond, uncond])
             ref = torch.cat([ref, torch.zeros_like(ref)])
             rays = torch.cat([rays, torch.zeros_like(rays)])
+            if hint is not None:
+                hint = torch.cat([hint, torch.zeros_like(hint)])
         c, h = self.config.model_channels, self.config.model_size
         x = shared_noise(b, v, (c, h, h), generator=generator, device=device).flatten(0, 1)
         scheduler = make_sample_scheduler(self.config)
@@ -356,7 +432,7 @@ class NVSModel(nn.Module):
         for t in scheduler.timesteps:
             model_in = torch.cat([x, x]) if guided else x
             ts = t.expand(model_in.shape[0]).to(device)
-            pred = self.denoise(model_in, ts, ref, cond, rays, v)
+            pred = self.denoise(model_in, ts, ref, cond, rays, v, hint)
             if guided:
                 pred_c, pred_u = pred.chunk(2)
                 pred = pred_u + guidance_scale * (pred_c - pred_u)

@@ -2,7 +2,8 @@
 
 Outputs in ``out``: ``<name>.png`` (sRGB, premultiplied colour with alpha), ``<name>_mask.png`` (alpha) and
 ``manifest.json``, a list of ``{view, light, image, mask}`` with paths relative to ``out``. Generation is
-cached under a key of the model hash and the hash of every input (reference image, cameras, settings).
+cached under a key of the model hash and the hash of every input (reference image, cameras, settings, and the
+geometry source that gives a warp-hint model the reference's metric depth).
 """
 
 from __future__ import annotations
@@ -19,11 +20,13 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diamond_sss.data import OLATDataset
-from diamond_sss.data.conventions import intrinsics_from_fov, opengl_c2w_to_opencv_w2c
+from diamond_sss.data.conventions import intrinsics_from_fov, opengl_c2w_to_opencv_w2c, scale_intrinsics
 from diamond_sss.data.images import to_srgb8, write_png
 from diamond_sss.diffusion.common import OutputCache, files_hash
+from diamond_sss.diffusion.geometry.base import GeometryError, GeometrySource
 from diamond_sss.diffusion.nvs.data import load_rgba_views
-from diamond_sss.diffusion.nvs.model import CONFIG_NAME, NVSBatch, NVSModel
+from diamond_sss.diffusion.nvs.model import CONFIG_NAME, NVSBatch, NVSConfig, NVSModel
+from diamond_sss.diffusion.nvs.warp import forward_warp, resize_depth
 from diamond_sss.utils.io import atomic_write_json, sha256_file
 
 MANIFEST = "manifest.json"
@@ -145,6 +148,45 @@ def _targets_from_json(text: str, dataset: OLATDataset) -> TargetCameras:
     return TargetCameras(w2c, K.clone(), list(range(n)), [f"pose_{i:03d}" for i in range(n)], size)
 
 
+def reference_depth(
+    dataset: OLATDataset, view: int, light: int, geometry: GeometrySource, size: int
+) -> Tensor:
+    """Metric camera z ``[1,1,size,size]`` (0 = background) of reference ``(view, light)`` from ``geometry``."""
+    photo = dataset.load(dataset.observation_index(view, light))
+    depth = geometry.maps(dataset, view, photo.rgb, photo.mask).depth
+    if depth is None:
+        raise GeometryError(
+            f"geometry source '{geometry.key()['kind']}' gives only relative depth; the novel-view warp hint "
+            "needs metric depth: use 'maps' (stored depth maps) or a reconstruction run folder"
+        )
+    return resize_depth(depth.permute(2, 0, 1)[None].float(), size)
+
+
+def warp_reference_views(
+    dataset: OLATDataset,
+    view: int,
+    light: int,
+    cameras: TargetCameras,
+    geometry: GeometrySource,
+    config: NVSConfig,
+) -> Tensor:
+    """The warp hint as ``config``'s model sees it, RGBA ``[T,4,S,S]`` upsampled to the targets' size ``S``."""
+    source = config.warp_source_size
+    reference, ref_K = load_rgba_views(dataset, [view], light, source)
+    depth = reference_depth(dataset, view, light, geometry, source)
+    size = config.image_size
+    warped, _ = forward_warp(
+        reference[0],
+        depth[0],
+        dataset.viewmats[view].float(),
+        ref_K[0].float(),
+        cameras.w2c.float(),
+        scale_intrinsics(cameras.K, size / cameras.size).float(),
+        size,
+    )
+    return F.interpolate(warped, size=(cameras.size, cameras.size), mode="bilinear", align_corners=False)
+
+
 def generate_novel_views(
     data: str | Path,
     out: str | Path,
@@ -158,10 +200,13 @@ def generate_novel_views(
     seed: int = 0,
     cache_dir: str | Path | None = None,
     device: str = "cpu",
+    geometry: GeometrySource | None = None,
 ) -> Path:
     """Generate the ``targets`` of ``data`` under ``light`` from reference ``view``; returns the manifest.
 
-    Deterministic for a seed; a second call with the same model and inputs is served from the cache.
+    A model with the warp hint needs ``geometry`` giving the reference's metric depth (stored maps or a
+    reconstruction run folder). Deterministic for a seed; a second call with the same model and inputs is
+    served from the cache.
     """
     dataset = OLATDataset(data, split)
     if not 0 <= view < dataset.num_views:
@@ -180,6 +225,12 @@ def generate_novel_views(
         raise FileNotFoundError(
             f"no novel-view model in {model_dir} (expected {CONFIG_NAME} and model.safetensors)"
         )
+    config = NVSConfig.from_dict(json.loads((model_dir / CONFIG_NAME).read_text()))
+    if config.warp_hint and geometry is None:
+        raise GeometryError(
+            f"the novel-view model in {model_dir} uses the warp hint and needs the reference's metric depth: "
+            "pass a geometry source ('maps' or a reconstruction run folder)"
+        )
     image_path = dataset.observations[dataset.observation_index(view, light)].image_path
     key = OutputCache.key(
         {
@@ -193,22 +244,24 @@ def generate_novel_views(
             "steps": steps,
             "guidance_scale": guidance_scale,
             "seed": seed,
+            "geometry": geometry.key() if config.warp_hint else None,
         }
     )
     cache = OutputCache(cache_dir if cache_dir is not None else default_cache_dir())
 
     def write(folder: Path) -> None:
         model = NVSModel.load(model_dir).to(device)
-        size = model.config.image_size
-        reference, _ = load_rgba_views(dataset, [view], light, size)
-        scale = size / cameras.size
-        K = cameras.K.clone()
-        K[:, :2] *= scale
+        size = model.config.warp_source_size if model.config.warp_hint else model.config.image_size
+        reference, ref_K = load_rgba_views(dataset, [view], light, size)
+        depth = reference_depth(dataset, view, light, geometry, size) if model.config.warp_hint else None
+        K = scale_intrinsics(cameras.K, size / cameras.size)
         batch = NVSBatch(
             reference=reference.to(device),
             reference_w2c=dataset.viewmats[view][None].float().to(device),
             target_w2c=cameras.w2c[None].float().to(device),
             target_K=K[None].float().to(device),
+            reference_K=ref_K.float().to(device),
+            reference_depth=None if depth is None else depth.to(device),
         )
         generator = torch.Generator(device=device).manual_seed(seed)
         rgba = model.sample(batch, num_steps=steps, guidance_scale=guidance_scale, generator=generator)[0]

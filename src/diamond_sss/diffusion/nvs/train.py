@@ -62,7 +62,9 @@ def finetune(
     model = NVSModel(config.model)
     if config.gradient_checkpointing:
         model.enable_gradient_checkpointing()
-    sequences = fixed_light_sequences(list(data), config.model.image_size)
+    warp = config.model.warp_hint
+    size = config.model.warp_source_size if warp else config.model.image_size
+    sequences = fixed_light_sequences(list(data), size, with_depth=warp)
     optimizer = torch.optim.AdamW(
         model.trainable_parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
     )
@@ -120,6 +122,16 @@ def _device_generator(device: torch.device, seed: int, step: int) -> torch.Gener
 
 
 def _to_device(batch, device: torch.device):
-    for name in ("reference", "reference_w2c", "target_w2c", "target_K", "targets"):
-        setattr(batch, name, getattr(batch, name).to(device))
+    for name in (
+        "reference",
+        "reference_w2c",
+        "target_w2c",
+        "target_K",
+        "targets",
+        "reference_K",
+        "reference_depth",
+    ):
+        value = getattr(batch, name)
+        if value is not None:
+            setattr(batch, name, value.to(device))
     return batch
