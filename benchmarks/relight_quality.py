@@ -37,7 +37,7 @@ METHODS = ("model", "source", "lambertian", "hint")
 RESULTS = Path(__file__).resolve().parent / "results" / "relight_quality"
 
 
-def evaluate_object(root: Path, model, steps: int, seed: int, cache: OutputCache) -> list[dict]:
+def evaluate_object(root: Path, model, steps: int, samples: int, seed: int, cache: OutputCache) -> list[dict]:
     """Per-image rows ``{object, view, source_light, light, method, psnr, ssim}`` of one object."""
     dataset = OLATDataset(root)
     rows = []
@@ -65,7 +65,16 @@ def evaluate_object(root: Path, model, steps: int, seed: int, cache: OutputCache
             "model": [
                 r.rgb
                 for r in relight_view(
-                    model, dataset, view, source_light, targets, geometry, cache, num_steps=steps, seed=seed
+                    model,
+                    dataset,
+                    view,
+                    source_light,
+                    targets,
+                    geometry,
+                    cache,
+                    num_steps=steps,
+                    seed=seed,
+                    samples=samples,
                 )
             ],
             "source": [source.rgb] * len(targets),
@@ -138,7 +147,8 @@ def main() -> None:
     )
     parser.add_argument("--data", type=Path, nargs="+", required=True, help="held-out object folders")
     parser.add_argument("--model", type=Path, default=None, help="model folder (default: the shipped model)")
-    parser.add_argument("--steps", type=int, default=20, help="DDIM steps")
+    parser.add_argument("--steps", type=int, default=1, help="DDIM steps")
+    parser.add_argument("--samples", type=int, default=8, help="samples averaged per image")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -147,12 +157,13 @@ def main() -> None:
         rows = [
             row
             for root in args.data
-            for row in evaluate_object(root, model, args.steps, args.seed, OutputCache(tmp))
+            for row in evaluate_object(root, model, args.steps, args.samples, args.seed, OutputCache(tmp))
         ]
     summary = summarize(rows)
     summary["settings"] = {
         "model": str(args.model or "shipped"),
         "steps": args.steps,
+        "samples": args.samples,
         "seed": args.seed,
         "objects": [str(p) for p in args.data],
     }

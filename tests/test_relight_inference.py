@@ -123,3 +123,19 @@ def test_clear_errors(setup, tmp_path):
         )
     with pytest.raises(ValueError, match="comma-separated"):
         relight(dataset.root, view, lights[0], "a,b", "maps", tmp_path / "out", model=root / "model")
+
+
+def test_ensemble_averages_out_the_sampling_noise(setup, tmp_path):
+    _, model, dataset, view, lights = setup
+
+    def relit(samples: int, seed: int) -> torch.Tensor:
+        cache = OutputCache(tmp_path / f"s{samples}_{seed}")
+        return relight_view(
+            model, dataset, view, lights[0], [lights[1]], StoredMapsGeometry(), cache, 2, seed, samples
+        )[0].rgb
+
+    spread_single = (relit(1, 0) - relit(1, 1)).abs().mean()
+    spread_ensemble = (relit(6, 0) - relit(6, 1)).abs().mean()
+    assert float(spread_ensemble) < 0.7 * float(spread_single)
+    with pytest.raises(ValueError, match="samples must be >= 1"):
+        relit(0, 0)

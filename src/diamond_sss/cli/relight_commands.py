@@ -104,7 +104,8 @@ def relight(
     out: Path,
     split: str = "train",
     model: Path | None = None,
-    steps: int = 20,
+    steps: int = 1,
+    samples: int = 8,
     seed: int = 0,
     cache: Path | None = None,
     device: str = "cpu",
@@ -125,7 +126,8 @@ def relight(
         out: output folder.
         split: data split.
         model: relighting model folder (default: the one shipped in the package).
-        steps: DDIM steps.
+        steps: DDIM steps (the shipped model is best with 1: see benchmarks/RESULTS.md).
+        samples: samples averaged per image (test-time ensemble).
         seed: noise seed.
         cache: cache folder (default $DIAMOND_SSS_CACHE/relight or ~/.cache/diamond_sss/relight).
         device: cpu | cuda.
@@ -159,6 +161,7 @@ def relight(
         OutputCache(cache or default_cache_root()),
         num_steps=steps,
         seed=seed,
+        samples=samples,
     )
     manifest = write_relit(out, relit)
     hits = sum(item.cached for item in relit)

@@ -51,6 +51,8 @@ class PipelineConfig:
     nvs_model: str | None = None
     relight_model: str | None = None
     diffusion_steps: int = 20
+    relight_steps: int = 1
+    relight_samples: int = 8
     guidance_scale: float = 3.0
     min_silhouette_iou: float = 0.5
     min_mask_fraction: float = 0.002
@@ -279,7 +281,7 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
             results = []
             for view, light in sorted(first_light.items()):
                 results += relight_view(model, dataset, view, light, target_lights, geometry, cache,
-                                        num_steps=cfg.diffusion_steps, seed=seed)
+                                        num_steps=cfg.relight_steps, seed=seed, samples=cfg.relight_samples)
             write_relit(relight_dir / "out", results)
             return {"views": len(first_light), "target_lights": len(target_lights), "images": len(results),
                     "sources_json": combined_json.name}

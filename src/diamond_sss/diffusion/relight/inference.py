@@ -1,9 +1,10 @@
 """Relight one view of a capture to several target lights, with an on-disk cache and a manifest.
 
 Cache key of one relit image: the model's weight hash, the source image's file hash, the camera, the
-geometry source's identity, the source and target lights, the DDIM steps and the seed. The initial noise
-of target light ``l`` is drawn from ``seed`` and ``l`` alone, so a result does not depend on how the
-target lights were batched.
+geometry source's identity, the source and target lights, the DDIM steps, the number of samples and the
+seed. The initial noise of sample ``k`` of target light ``l`` is drawn from ``seed``, ``l`` and ``k`` alone, so
+a result does not depend on how the target lights were batched. With ``samples > 1`` the image is the mean of
+that many samples (a test-time ensemble, as in Marigold: it averages out the noise the sampler leaves).
 """
 
 from __future__ import annotations
@@ -71,14 +72,17 @@ def relight_view(
     target_lights: list[int],
     geometry: GeometrySource,
     cache: OutputCache,
-    num_steps: int = 20,
+    num_steps: int = 1,
     seed: int = 0,
+    samples: int = 8,
 ) -> list[RelitImage]:
     """Relight ``(view, source_light)`` of ``dataset`` to every light in ``target_lights`` (lattice indices).
 
-    Cache misses are generated in one batch; hits are read back. Raises ``KeyError`` / ``ValueError`` naming
+    Cache misses are generated in one batch per sample; hits are read back. Raises ``KeyError`` / ``ValueError`` naming
     the view or light when the source image or a target light does not exist.
     """
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1, got {samples}")
     if not 0 <= view < dataset.num_views:
         raise ValueError(f"view {view} out of range: {dataset.json_path} has {dataset.num_views} views")
     for light in [source_light, *target_lights]:
@@ -106,6 +110,7 @@ def relight_view(
         "geometry": geometry.key(),
         "source_code": codes[source_light].tolist(),
         "steps": num_steps,
+        "samples": samples,
         "seed": seed,
     }
     keys = {
@@ -128,6 +133,7 @@ def relight_view(
             keys,
             num_steps,
             seed,
+            samples,
         )
     results = []
     for light in target_lights:
@@ -153,6 +159,7 @@ def _generate(
     keys: dict[int, str],
     num_steps: int,
     seed: int,
+    samples: int,
 ) -> None:
     maps = geometry.maps(dataset, view, rgb, mask)
     device = next(model.parameters()).device
@@ -165,24 +172,30 @@ def _generate(
         .to(device)
     )
     shape = model.sample_shape(1)[1:]
-    noise = torch.stack(
-        [
-            torch.randn(shape, generator=torch.Generator().manual_seed(seed * 100_003 + light))
-            for light in lights
-        ]
-    )
-    with torch.no_grad():
-        out = (
-            model.relight(
-                cond,
-                codes[lights].to(device),
-                codes[[source_light] * count].to(device),
-                num_steps=num_steps,
-                noise=noise,
-            )
-            .float()
-            .cpu()
+    out = torch.zeros(count, 3, model.config.resolution, model.config.resolution)
+    for sample in range(samples):
+        noise = torch.stack(
+            [
+                torch.randn(
+                    shape,
+                    generator=torch.Generator().manual_seed(seed * 100_003 + light + sample * 1_000_003),
+                )
+                for light in lights
+            ]
         )
+        with torch.no_grad():
+            out += (
+                model.relight(
+                    cond,
+                    codes[lights].to(device),
+                    codes[[source_light] * count].to(device),
+                    num_steps=num_steps,
+                    noise=noise,
+                )
+                .float()
+                .cpu()
+                / samples
+            )
     height, width = rgb.shape[:2]
     if out.shape[-2:] != (height, width):
         out = F.interpolate(out, size=(height, width), mode="bilinear", align_corners=False)
