@@ -222,6 +222,9 @@ def test_lambertian_hint_known_answer():
     inside = mask[..., 0] > 0.5
     assert torch.allclose(hint[inside], torch.full_like(hint[inside], 0.4), atol=1e-4)
     assert float(hint[~inside].abs().max()) == 0.0
+    # Screen-space diffusion inside the mask leaves uniform shading unchanged.
+    diffused = model_to_image(lambertian_hint(cond, frontal, at_60, blur_sigma=1.5))
+    assert torch.allclose(diffused, hint, atol=1e-4)
     # Twice as far away: a quarter of the light.
     far = light_code(torch.tensor([[0.0, 0.0, -6.0]]), w2c, torch.zeros(3), 1.0)
     assert torch.allclose(
@@ -245,3 +248,18 @@ def test_residual_model_adds_the_hint_back():
     assert torch.allclose((residual - direct)[unclamped], hint[unclamped], atol=1e-5)
     with pytest.raises(ValueError, match="needs shading_hint"):
         tiny_config(shading_hint=False)
+
+
+def test_hint_blur_preserves_constants_and_spreads_light():
+    from diamond_sss.diffusion.relight.hint import gaussian_blur
+
+    constant = torch.full((1, 2, 9, 9), 0.7)
+    assert torch.allclose(gaussian_blur(constant, 1.5), constant, atol=1e-6)
+    impulse = torch.zeros(1, 1, 15, 15)
+    impulse[0, 0, 7, 7] = 1.0
+    blurred = gaussian_blur(impulse, 1.0)
+    assert float(blurred.sum()) == pytest.approx(1.0, abs=1e-5)
+    # Separable Gaussian: the ratio of neighbours one pixel apart is exp(-1/2), and of diagonal ones exp(-1).
+    assert float(blurred[0, 0, 7, 8] / blurred[0, 0, 7, 7]) == pytest.approx(math.exp(-0.5), rel=1e-4)
+    assert float(blurred[0, 0, 8, 8] / blurred[0, 0, 7, 7]) == pytest.approx(math.exp(-1.0), rel=1e-4)
+    assert torch.equal(gaussian_blur(impulse, 0.0), impulse)

@@ -31,6 +31,8 @@ class RelightModelConfig:
         light_tokens: number of cross-attention tokens made from the light code(s).
         use_source_light: also give the source light's code (timestep embedding and tokens).
         shading_hint: append the directional Lambertian re-shading (``hint.py``) to the ControlNet's input.
+        hint_blur: screen-space diffusion of the hint's shading, a Gaussian of ``hint_blur * resolution``
+            pixels (``hint.py``; 1/32 = 2 px at 64 px, 0 = plain Lambertian).
         residual: denoise ``target - hint`` (in the denoised space) instead of the target itself, so the
             network learns the correction to Lambertian shading; needs ``shading_hint``.
         norm_num_groups: GroupNorm groups.
@@ -47,6 +49,7 @@ class RelightModelConfig:
     light_tokens: int = 4
     use_source_light: bool = False
     shading_hint: bool = True
+    hint_blur: float = 1.0 / 32.0
     residual: bool = True
     norm_num_groups: int = 8
     scheduler: SchedulerConfig = field(default_factory=SchedulerConfig)

@@ -240,7 +240,8 @@ class RelightDiffusion(nn.Module):
             raise ValueError(
                 "the shading hint needs the source light's code, shaped like target_code [B, 10]"
             )
-        return lambertian_hint(conditioning, target_code, source_code)
+        sigma = self.config.hint_blur * conditioning.shape[-1]
+        return lambertian_hint(conditioning, target_code, source_code, blur_sigma=sigma)
 
     def offset(self, conditioning: Tensor, target_code: Tensor, source_code: Tensor | None) -> Tensor | None:
         """``E(hint)``, what the denoised variable is measured from with ``residual``; ``None`` without."""
