@@ -4,11 +4,14 @@ For each object (never one of the fine-tuning objects) and its light 0, the refe
 other view; PSNR / SSIM (sRGB, full frame) and mask IoU against the rendered ground truth are binned by the
 angle between target and reference cameras. Baseline: the relightable Gaussian model trained (short CPU
 schedule) on the same single reference image, rendered at the target cameras under the same light; the
-reference image itself, copied to every target, is reported as the trivial floor ("reference-copy").
+reference image itself, copied to every target, is reported as the trivial floor ("reference-copy"), and
+the geometric warp hint alone ("warp-hint": the reference forward-warped with its depth, exactly as a
+warp-hint model sees it, upsampled to the image size). The model and the hint take the reference's metric
+depth from ``--geometry`` (default: the depth maps stored with the data, so render them).
 Writes benchmarks/results/nvs_quality/{nvs_quality.json, nvs_quality.md}.
 
     python -m diamond_sss.synth.cli --shape torus --material marble --seed 21 --out /tmp/nvs/torus \\
-        --views 12 --lights 1 --size 64 --spp 32 --test-views 0 --test-lights 0 --no-maps
+        --views 12 --lights 1 --size 64 --spp 32 --test-views 0 --test-lights 0
     python benchmarks/nvs_quality.py --data /tmp/nvs/torus /tmp/nvs/bunny --baseline-iterations 150
 """
 
@@ -23,7 +26,14 @@ import torch
 
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.images import load_rgba
-from diamond_sss.diffusion.nvs.pipeline import default_model_dir, generate_novel_views
+from diamond_sss.diffusion.geometry import GeometrySource, geometry_source
+from diamond_sss.diffusion.nvs.model import CONFIG_NAME, NVSConfig
+from diamond_sss.diffusion.nvs.pipeline import (
+    default_model_dir,
+    generate_novel_views,
+    parse_targets,
+    warp_reference_views,
+)
 from diamond_sss.diffusion.nvs.rays import view_angle_degrees
 from diamond_sss.evaluation.metrics import image_metrics
 from diamond_sss.training.config import short_schedule
@@ -80,8 +90,9 @@ def evaluate_object(
     steps: list[int],
     guidance: float,
     iterations: int,
+    geometry: GeometrySource,
 ) -> list[dict]:
-    """Per-image metrics of the model (one method per DDIM step count) and of the Gaussian baseline."""
+    """Per-image metrics of the model (one method per DDIM step count), the warp hint and the baselines."""
     dataset = OLATDataset(data, "train")
     targets = [v for v in range(dataset.num_views) if v != view and bool(dataset.presence[v, light])]
     predictions = {}
@@ -98,10 +109,15 @@ def evaluate_object(
             steps=count,
             guidance_scale=guidance,
             cache_dir=out / "cache",
+            geometry=geometry,
         )
         images = [load_rgba(folder / entry["image"]) for entry in json.loads(manifest.read_text())]
         predictions[f"nvs-{count}-steps"] = images
         print(f"{data.name}: nvs ({count} steps) {time.perf_counter() - started:.1f} s")
+    config = NVSConfig.from_dict(json.loads((model / CONFIG_NAME).read_text()))
+    cameras = parse_targets(",".join(map(str, targets)), dataset)
+    warped = warp_reference_views(dataset, view, light, cameras, geometry, config).clamp(0, 1)
+    predictions["warp-hint"] = [(w[:3].permute(1, 2, 0), w[3:].permute(1, 2, 0)) for w in warped]
     reference = dataset.load(dataset.observation_index(view, light))
     predictions["reference-copy"] = [(reference.rgb, reference.mask)] * len(targets)
     started = time.perf_counter()
@@ -159,9 +175,13 @@ def main() -> None:
     parser.add_argument("--steps", type=int, nargs="+", default=[25, 1], help="DDIM step counts to compare")
     parser.add_argument("--guidance", type=float, default=2.0)
     parser.add_argument("--baseline-iterations", type=int, default=150)
+    parser.add_argument(
+        "--geometry", default="maps", help="reference depth for the warp hint: 'maps' or a run folder"
+    )
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     model = args.model or default_model_dir()
+    geometry = geometry_source(args.geometry)
     rows = []
     for data in args.data:
         rows += evaluate_object(
@@ -173,6 +193,7 @@ def main() -> None:
             args.steps,
             args.guidance,
             args.baseline_iterations,
+            geometry,
         )
     table = summarise(rows)
     lines = [

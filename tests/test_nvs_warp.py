@@ -154,6 +154,23 @@ def test_training_data_carries_the_reference_depth_and_the_model_trains_on_it(wa
     assert out.shape == (1, 2, 4, 16, 16)
 
 
+def test_hint_residual_with_a_zero_residual_oracle_returns_the_warp(warp_batch):
+    from diamond_sss.diffusion.nvs.model import hint_base, make_sample_scheduler
+
+    model = NVSModel(NVSConfig(**TINY_NVS, hint_residual=True)).eval()
+    alphas = make_sample_scheduler(model.config).alphas_cumprod
+
+    def oracle(noisy, timesteps, reference, context, rays, num_views, hint=None):
+        return noisy / (1 - alphas[timesteps].reshape(-1, 1, 1, 1)).sqrt()  # epsilon of a clean residual 0
+
+    model.denoise = oracle
+    out = model.sample(warp_batch, num_steps=5, generator=torch.Generator().manual_seed(0))
+    expected = ((hint_base(model.warp_hint(warp_batch)) + 1) / 2).reshape(out.shape)
+    torch.testing.assert_close(out, expected, atol=1e-4, rtol=0)
+    with pytest.raises(ValueError, match="needs warp_hint=True"):
+        NVSConfig(warp_hint=False, hint_residual=True)
+
+
 def test_warp_model_refuses_a_batch_without_depth(warp_batch):
     model = NVSModel(NVSConfig(**TINY_NVS))
     warp_batch = type(warp_batch)(**{**vars(warp_batch), "reference_depth": None})
@@ -212,3 +229,9 @@ def test_generation_with_the_warp_hint_needs_metric_depth_and_keys_the_cache_by_
     assert [m["view"] for m in manifest] == [1, 2]
     run("b", ScaledMaps())
     assert len(list((tmp_path / "cache").glob("*/*"))) == 2  # one cache entry per geometry source
+    dataset = OLATDataset(data)
+    cameras = pipeline.parse_targets("1,3", dataset)
+    hint = pipeline.warp_reference_views(dataset, 0, 0, cameras, StoredMapsGeometry(), NVSConfig(**TINY_NVS))
+    truth = load_rgba_views(dataset, [1, 3], 0, dataset.width)[0][:, 3]
+    overlap = ((hint[:, 3] > 0.5) & (truth > 0.5)).sum() / ((hint[:, 3] > 0.5) | (truth > 0.5)).sum()
+    assert hint.shape == (2, 4, 64, 64) and float(overlap) > 0.5

@@ -19,6 +19,7 @@ def finetune_nvs(
     space: str = "pixel",
     prediction_type: str = "epsilon",
     warp_hint: bool | None = None,
+    hint_residual: bool = False,
     vae: Path | None = None,
     gradient_checkpointing: bool = True,
     checkpoint_every: int = 200,
@@ -42,6 +43,7 @@ def finetune_nvs(
         prediction_type: epsilon (Free3D's objective) or v_prediction (steadier for small pixel models).
         warp_hint: feed the reference forward-warped with its stored depth maps (default: on in pixel space;
             pixel space only).
+        hint_residual: denoise the residual from the warped reference where it is valid (needs the warp hint).
         vae: local diffusers AutoencoderKL folder for latent space.
         gradient_checkpointing: recompute activations of every ResNet/transformer block in the backward pass.
         checkpoint_every: steps between atomic checkpoints.
@@ -63,6 +65,7 @@ def finetune_nvs(
         vae_path=None if vae is None else str(vae),
         prediction_type=prediction_type,
         warp_hint=space == "pixel" if warp_hint is None else warp_hint,
+        hint_residual=hint_residual,
     )
     config = FinetuneConfig(
         steps=steps,

@@ -38,7 +38,8 @@ class NVSConfig:
     ``beta_schedule="scaled_linear"`` is the LDM/Free3D "linear" schedule (betas linear in sqrt space,
     ``0.00085 -> 0.012`` over 1000 steps). ``warp_hint`` adds the geometric warp hint to the UNet input
     (pixel space only); its reference image and depth are used at ``warp_supersample`` times the image size,
-    so surfaces magnified by the new view leave no cracks.
+    so surfaces magnified by the new view leave no cracks. ``hint_residual`` denoises ``x0 - m w`` instead
+    of ``x0`` (``w`` the warped reference in model space, ``m`` its validity).
     """
 
     space: str = "pixel"
@@ -64,6 +65,7 @@ class NVSConfig:
     condition_dropout: float = 0.05
     warp_hint: bool = True
     warp_supersample: int = 2
+    hint_residual: bool = False
 
     def __post_init__(self) -> None:
         if self.space not in ("pixel", "latent"):
@@ -74,6 +76,10 @@ class NVSConfig:
             )
         if self.warp_hint and self.space != "pixel":
             raise ValueError("warp_hint is a pixel-space hint: use space='pixel' or warp_hint=False")
+        if self.hint_residual and not self.warp_hint:
+            raise ValueError(
+                "hint_residual denoises the residual from the warp hint: it needs warp_hint=True"
+            )
         if self.warp_supersample < 1:
             raise ValueError(f"warp_supersample must be >= 1, got {self.warp_supersample}")
         if self.space == "latent" and self.image_size % 8:
@@ -146,7 +152,7 @@ def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
 
     Trailing timestep spacing, so the first step is at ``t = T - 1`` (pure noise) whatever the step count
     (one step returns the conditional-mean estimate). In pixel space the clean estimate is clipped to
-    ``[-1, 1]`` at every step.
+    ``[-1, 1]`` (``[-2, 2]`` for a residual from the warp hint) at every step.
     """
     return DDIMScheduler(
         num_train_timesteps=config.num_train_timesteps,
@@ -155,6 +161,7 @@ def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
         beta_schedule=config.beta_schedule,
         prediction_type=config.prediction_type,
         clip_sample=config.space == "pixel",
+        clip_sample_range=2.0 if config.hint_residual else 1.0,
         set_alpha_to_one=True,
         timestep_spacing="trailing",
     )
@@ -367,6 +374,8 @@ class NVSModel(nn.Module):
             target = self.encode(batch.targets.flatten(0, 1))
             reference = self.encode(batch.reference)
             hint = self.warp_hint(batch)
+            if self.config.hint_residual:
+                target = target - hint_base(hint)
         t = torch.randint(0, scheduler.config.num_train_timesteps, (b,), generator=generator, device=device)
         t = t.repeat_interleave(v)
         noise = torch.randn(target.shape, generator=generator, device=device)
@@ -411,6 +420,7 @@ class NVSModel(nn.Module):
         device = batch.reference.device
         reference = self.encode(batch.reference)
         hint = self.warp_hint(batch)
+        base = hint_base(hint) if self.config.hint_residual else 0.0
         rays, pose = self.conditioning(batch, reference)
         embedding = self.reference_encoder(reference).repeat_interleave(v, dim=0)
         ref = reference.repeat_interleave(v, dim=0)
@@ -437,7 +447,7 @@ class NVSModel(nn.Module):
                 pred_c, pred_u = pred.chunk(2)
                 pred = pred_u + guidance_scale * (pred_c - pred_u)
             x = scheduler.step(pred, t, x).prev_sample
-        rgba = self.decode(x)
+        rgba = self.decode(x + base)
         return rgba.reshape(b, v, *rgba.shape[1:])
 
     # -------------------------------------------------------------- save/load
@@ -468,6 +478,11 @@ class NVSModel(nn.Module):
                 f"{folder / WEIGHTS_NAME}: missing keys {missing[:5]}, unexpected {unexpected[:5]}"
             )
         return model.eval()
+
+
+def hint_base(hint: Tensor) -> Tensor:
+    """Warped reference where valid, 0 elsewhere: ``m w`` of a hint ``[N,5,s,s]`` -> ``[N,4,s,s]``."""
+    return hint[:, :4] * hint[:, 4:5]
 
 
 def shared_noise(
