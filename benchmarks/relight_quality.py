@@ -21,6 +21,7 @@ import json
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from diamond_sss.data.dataset import OLATDataset
@@ -28,19 +29,23 @@ from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.geometry import StoredMapsGeometry
 from diamond_sss.diffusion.relight.baselines import lambertian_relight
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, model_to_image
-from diamond_sss.diffusion.relight.hint import lambertian_hint
 from diamond_sss.diffusion.relight.inference import load_model, relight_view
 from diamond_sss.diffusion.relight.light import light_code
+from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.metrics import image_metrics
 
 METHODS = ("model", "source", "lambertian", "hint")
+FIGURE_METHODS = ("lambertian", "hint", "model")
 RESULTS = Path(__file__).resolve().parent / "results" / "relight_quality"
 
 
-def evaluate_object(root: Path, model, steps: int, samples: int, seed: int, cache: OutputCache) -> list[dict]:
-    """Per-image rows ``{object, view, source_light, light, method, psnr, ssim}`` of one object."""
+def evaluate_object(
+    root: Path, model, steps: int, samples: int, seed: int, cache: OutputCache
+) -> tuple[list[dict], list[np.ndarray]]:
+    """Per-image rows ``{object, view, source_light, light, method, psnr, ssim}`` of one object, and the figure row
+    of its first relit image (source, each method, ground truth)."""
     dataset = OLATDataset(root)
-    rows = []
+    rows, figure_row = [], []
     geometry = StoredMapsGeometry()
     for view in range(dataset.num_views):
         lights = [int(i) for i in torch.nonzero(dataset.presence[view])[:, 0]]
@@ -91,13 +96,14 @@ def evaluate_object(root: Path, model, steps: int, samples: int, seed: int, cach
                 )
             ),
             "hint": list(
-                model_to_image(
-                    lambertian_hint(conditioning, codes[targets], codes[[source_light] * len(targets)])
-                )
+                model_to_image(model.hint(conditioning, codes[targets], codes[[source_light] * len(targets)]))
             ),
         }
         for i, light in enumerate(targets):
             truth = dataset.load(dataset.observation_index(view, light))
+            if not figure_row:
+                images = [source.rgb] + [predictions[m][i] for m in FIGURE_METHODS] + [truth.rgb]
+                figure_row = [to_display(image) for image in images]
             for method in METHODS:
                 metrics = image_metrics(predictions[method][i], truth.rgb, source.mask, truth.mask)
                 rows.append(
@@ -111,7 +117,7 @@ def evaluate_object(root: Path, model, steps: int, samples: int, seed: int, cach
                         "ssim": metrics.ssim,
                     }
                 )
-    return rows
+    return rows, figure_row
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -153,12 +159,14 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     model = load_model(args.model).eval()
+    rows, figure = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        rows = [
-            row
-            for root in args.data
-            for row in evaluate_object(root, model, args.steps, args.samples, args.seed, OutputCache(tmp))
-        ]
+        for root in args.data:
+            object_rows, figure_row = evaluate_object(
+                root, model, args.steps, args.samples, args.seed, OutputCache(tmp)
+            )
+            rows += object_rows
+            figure.append(figure_row)
     summary = summarize(rows)
     summary["settings"] = {
         "model": str(args.model or "shipped"),
@@ -170,6 +178,13 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "relight_quality.json").write_text(
         json.dumps({"summary": summary, "rows": rows}, indent=2) + "\n"
+    )
+    save_image_grid(
+        args.out / "relight_quality.png",
+        figure,
+        row_labels=[p.name for p in args.data],
+        col_labels=["source", *FIGURE_METHODS, "ground truth"],
+        title="relighting held-out objects: first relit image of each",
     )
     print(f"{'method':<12}{'PSNR':>8}{'SSIM':>8}")
     for method, values in summary["overall"].items():
