@@ -55,7 +55,7 @@ def test_spread_subset():
 def test_pipeline_end_to_end_and_resume(setup, tmp_path):
     data, nvs, relight, cache = setup
     cfg = PipelineConfig(nvs_views=2, relight_lights=1, nvs_model=str(nvs), relight_model=str(relight),
-                         diffusion_steps=2, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache))
+                         nvs_steps=2, relight_steps=2, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache))
     result = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg,
                           show_progress=False)
     manifest = json.loads((tmp_path / "pipeline.json").read_text())
@@ -76,7 +76,7 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
 
 def test_sanity_checks_drop_bad_generations(setup, tmp_path):
     data, nvs, _, cache = setup
-    cfg = PipelineConfig(augment=("nvs",), nvs_views=2, nvs_model=str(nvs), diffusion_steps=2,
+    cfg = PipelineConfig(augment=("nvs",), nvs_views=2, nvs_model=str(nvs), nvs_steps=2,
                          min_silhouette_iou=1.01, cache_dir=str(cache))
     result = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg,
                           show_progress=False)

@@ -91,8 +91,8 @@ def nvs(
     out: Path,
     split: str = "train",
     model: Path | None = None,
-    steps: int = 50,
-    guidance_scale: float = 3.0,
+    steps: int = 1,
+    guidance_scale: float = 1.0,
     seed: int = 0,
     cache: Path | None = None,
     device: str = "cpu",
@@ -112,7 +112,7 @@ def nvs(
         out: output folder.
         split: data split of the reference and of the target indices.
         model: model folder (config.json + model.safetensors); default: the model shipped in the package.
-        steps: DDIM steps.
+        steps: DDIM steps (the shipped model is best with 1: see benchmarks/RESULTS.md).
         guidance_scale: classifier-free guidance scale (1: no guidance).
         seed: seed of the shared initial noise.
         cache: cache folder (default $DIAMOND_SSS_CACHE/nvs or ~/.cache/diamond_sss/nvs).

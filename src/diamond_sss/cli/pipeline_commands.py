@@ -13,7 +13,8 @@ from diamond_sss.cli.train_commands import SetArg
 def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lights=5%", preset: str = "diamond",
         augment: str = "auto", iterations: int | None = None, set_: SetArg = [],  # noqa: B006
         nvs_views: int = 12, relight_lights: int = 8, nvs_model: str | None = None,
-        relight_model: str | None = None, diffusion_steps: int = 20, cache_dir: str | None = None, seed: int = 0,
+        relight_model: str | None = None, nvs_steps: int = 1, relight_steps: int = 1,
+        relight_samples: int = 8, cache_dir: str | None = None, seed: int = 0,
         device: str = "cpu", json: bool = False, quiet: bool = False) -> None:
     """Diffusion-augmented sparse reconstruction (supplement Sec. C.4): prelim -> nvs -> relight -> final -> eval.
 
@@ -32,7 +33,9 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         relight_lights: at most this many missing lights generated per view (0: all).
         nvs_model: folder of a novel-view model (default: the shipped one).
         relight_model: folder of a relighting model (default: the shipped one).
-        diffusion_steps: DDIM steps of both diffusion models.
+        nvs_steps: DDIM steps of the novel-view model (the shipped model is best with 1).
+        relight_steps: DDIM steps of the relighting model (the shipped model is best with 1).
+        relight_samples: relighting samples averaged per image (test-time ensemble).
         cache_dir: cache of generated images (default: ~/.cache/diamond_sss or $DIAMOND_SSS_CACHE).
         seed: seed of the regime, reconstructions and diffusion noise.
         device: cpu | cuda for the diffusion models (reconstructions use --set device=...).
@@ -47,7 +50,8 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
     if iterations is not None:
         overrides["iterations"] = iterations
     cfg = PipelineConfig(augment=stages, nvs_views=nvs_views, relight_lights=relight_lights, nvs_model=nvs_model,
-                         relight_model=relight_model, diffusion_steps=diffusion_steps, cache_dir=cache_dir,
+                         relight_model=relight_model, nvs_steps=nvs_steps, relight_steps=relight_steps,
+                         relight_samples=relight_samples, cache_dir=cache_dir,
                          device=device)
     result = run_pipeline(data, out, split=split, regime=regime, preset=preset, overrides=overrides, seed=seed,
                           config=cfg, show_progress=not quiet)

@@ -50,10 +50,10 @@ class PipelineConfig:
     relight_lights: int = 8
     nvs_model: str | None = None
     relight_model: str | None = None
-    diffusion_steps: int = 20
+    nvs_steps: int = 1
     relight_steps: int = 1
     relight_samples: int = 8
-    guidance_scale: float = 3.0
+    nvs_guidance: float = 1.0
     min_silhouette_iou: float = 0.5
     min_mask_fraction: float = 0.002
     cache_dir: str | None = None
@@ -239,7 +239,7 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
                 for reference, group in nearest.items():
                     generate_novel_views(data, nvs_dir / f"l{light:03d}_v{reference:03d}", reference, light,
                                          ",".join(str(v) for v in group), split=split, model_dir=cfg.nvs_model,
-                                         steps=cfg.diffusion_steps, guidance_scale=cfg.guidance_scale, seed=seed,
+                                         steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=seed,
                                          cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
                                          device=cfg.device, geometry=geometry)
                     calls += 1
