@@ -22,6 +22,8 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
+
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.evaluation.ablation import regime_slug
 from diamond_sss.evaluation.evaluate import render_observation
@@ -98,6 +100,8 @@ def main() -> None:
                         help="shape:material pairs or data folders")
     parser.add_argument("--regimes", nargs="+", default=list(REGIMES))
     parser.add_argument("--methods", nargs="+", default=list(METHODS))
+    parser.add_argument("--dense-methods", nargs="+", default=None,
+                        help="methods run in the `all` regime (default: --methods; the pipeline generates nothing there)")
     parser.add_argument("--iterations", type=int, default=400)
     parser.add_argument("--size", type=int, default=64)
     parser.add_argument("--spp", type=int, default=128)
@@ -108,7 +112,7 @@ def main() -> None:
     for spec in args.objects:
         data = resolve_object(spec, args.size, args.spp)
         for regime in args.regimes:
-            for method in args.methods:
+            for method in (args.dense_methods or args.methods) if regime == "all" else args.methods:
                 run = args.out / data.name / regime_slug(regime) / method
                 started = time.perf_counter()
                 metrics = run_method(method, data, run, regime, args.iterations)
@@ -131,6 +135,9 @@ def main() -> None:
     for regime in args.regimes:
         row = [to_display(test.load(0).rgb)]
         for method in args.methods:
+            if regime == "all" and method not in (args.dense_methods or args.methods):
+                row.append(np.zeros_like(row[0]))
+                continue
             scene, _ = load_scene(final_run(method, args.out / data.name / regime_slug(regime) / method))
             row.append(to_display(render_observation(scene, test, 0, "cpu").radiance[0]))
         grid.append(row)
