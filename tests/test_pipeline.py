@@ -74,6 +74,21 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
         run_pipeline(data, tmp_path, regime="views=3,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
 
 
+def test_relighting_targets_the_lights_each_view_lacks(setup, tmp_path):
+    # All views under one light each, the lights spread over the views: every lattice light is used by some view,
+    # yet each view still lacks the others and is relit to them.
+    data, _, relight, cache = setup
+    cfg = PipelineConfig(augment=("relight",), relight_lights=0, relight_model=str(relight), relight_steps=1,
+                         relight_samples=1, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache))
+    run_pipeline(data, tmp_path, regime="all-views-1-light", overrides=TRAIN, config=cfg, show_progress=False)
+    real = {(o.view, o.light) for o in OLATDataset(tmp_path / "relight", "sources").observations}
+    relit = json.loads((tmp_path / "relight" / "out" / "manifest.json").read_text())
+    assert len({light for _, light in real}) > 1
+    assert sorted((e["view"], e["light"]) for e in relit) == sorted(
+        (view, light) for view, _ in real for light in range(3) if (view, light) not in real
+    )
+
+
 def test_sanity_checks_drop_bad_generations(setup, tmp_path):
     data, nvs, _, cache = setup
     cfg = PipelineConfig(augment=("nvs",), nvs_views=2, nvs_model=str(nvs), nvs_steps=2,

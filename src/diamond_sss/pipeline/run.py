@@ -6,9 +6,9 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
                 ``prelim_iterations`` steps (default: the final reconstruction's);
 2. ``nvs``      novel views: for each real light, the lattice views the regime left out (the ``nvs_views``
                 farthest-point-spread ones when capped) generated from the nearest real view under that light;
-3. ``relight``  every real and generated view relit to the lattice lights the regime left out (the
-                ``relight_lights`` spread ones when capped), from the view's own light, geometry rendered from
-                the preliminary reconstruction;
+3. ``relight``  every real and generated view relit to the lattice lights it lacks (the ``relight_lights``
+                spread ones when capped), from the view's first light, geometry rendered from the preliminary
+                reconstruction;
 4. ``final``    the reconstruction on real images (photometric weight 1) and generated ones (weight
                 ``synthetic_weight``, geometric losses at full weight), with the multi-view losses;
 5. ``eval``     the test split (novel views under novel lights).
@@ -255,8 +255,6 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
 
     relight_dir = out / "relight"
     if "relight" in cfg.augment:
-        missing_lights = [light for light in range(real.num_lights) if light not in real_lights]
-        target_lights = spread_subset(missing_lights, light_dirs, cfg.relight_lights, seed)
         sources = [GeneratedImage(o.view, o.light, o.image_path, o.mask_path)
                    for i, o in enumerate(real.observations) if i in set(selection.observations)] + generated
         combined_json = write_capture(relight_dir, "sources", real, sources)
@@ -275,16 +273,17 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
             geometry = RenderedGeometry(prelim_dir, device=cfg.device)
             cache = OutputCache(Path(cfg.cache_dir) / "relight" if cfg.cache_dir else default_cache_root())
             dataset = OLATDataset(relight_dir, "sources")
-            first_light: dict[int, int] = {}
+            lights_of_view: dict[int, list[int]] = {}
             for obs in dataset.observations:
-                first_light.setdefault(obs.view, obs.light)
+                lights_of_view.setdefault(obs.view, []).append(obs.light)
             results = []
-            for view, light in sorted(first_light.items()):
-                results += relight_view(model, dataset, view, light, target_lights, geometry, cache,
+            for view, lights in sorted(lights_of_view.items()):
+                missing = [light for light in range(real.num_lights) if light not in lights]
+                targets = spread_subset(missing, light_dirs, cfg.relight_lights, seed)
+                results += relight_view(model, dataset, view, lights[0], targets, geometry, cache,
                                         num_steps=cfg.relight_steps, seed=seed, samples=cfg.relight_samples)
             write_relit(relight_dir / "out", results)
-            return {"views": len(first_light), "target_lights": len(target_lights), "images": len(results),
-                    "sources_json": combined_json.name}
+            return {"views": len(lights_of_view), "images": len(results), "sources_json": combined_json.name}
 
         stage("relight", relight_stage)
         manifest_path = relight_dir / "out" / "manifest.json"
