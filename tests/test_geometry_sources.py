@@ -7,6 +7,7 @@ import shutil
 
 import pytest
 import torch
+from tiny_models import tiny_sd_unet, tiny_vae
 
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.embedded import embedded_dataset
@@ -119,31 +120,11 @@ def tiny_depth_anything(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def tiny_marigold(tmp_path_factory):
-    from diffusers import AutoencoderKL, DDIMScheduler, MarigoldNormalsPipeline, UNet2DConditionModel
+    from diffusers import DDIMScheduler, MarigoldNormalsPipeline
 
     torch.manual_seed(0)
-    unet = UNet2DConditionModel(
-        sample_size=8,
-        in_channels=8,
-        out_channels=4,
-        block_out_channels=(8, 16),
-        down_block_types=("DownBlock2D", "CrossAttnDownBlock2D"),
-        up_block_types=("CrossAttnUpBlock2D", "UpBlock2D"),
-        layers_per_block=1,
-        cross_attention_dim=8,
-        norm_num_groups=4,
-        attention_head_dim=4,
-    )
-    vae = AutoencoderKL(
-        in_channels=3,
-        out_channels=3,
-        latent_channels=4,
-        block_out_channels=(8, 8),
-        down_block_types=("DownEncoderBlock2D",) * 2,
-        up_block_types=("UpDecoderBlock2D",) * 2,
-        norm_num_groups=4,
-        layers_per_block=1,
-    )
+    unet = tiny_sd_unet(in_channels=8, cross_attention_dim=8)
+    vae = tiny_vae()
     scheduler = DDIMScheduler(prediction_type="v_prediction")
     pipe = MarigoldNormalsPipeline(
         unet=unet,

@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from tiny_models import TINY_RELIGHT
+from tiny_models import TINY_RELIGHT, tiny_sd_unet, tiny_vae
 
 from diamond_sss.data.conventions import look_at_opengl_c2w, opengl_c2w_to_opencv_w2c
 from diamond_sss.diffusion.common.sampling import SchedulerConfig, make_ddpm_scheduler
@@ -151,31 +151,11 @@ def test_save_load_round_trip(tmp_path):
 
 
 def test_from_local_stable_diffusion_folder(tmp_path):
-    from diffusers import AutoencoderKL, UNet2DConditionModel
+    from diffusers import UNet2DConditionModel
 
     torch.manual_seed(0)
-    UNet2DConditionModel(
-        sample_size=8,
-        in_channels=4,
-        out_channels=4,
-        block_out_channels=(8, 16),
-        down_block_types=("DownBlock2D", "CrossAttnDownBlock2D"),
-        up_block_types=("CrossAttnUpBlock2D", "UpBlock2D"),
-        layers_per_block=1,
-        cross_attention_dim=12,
-        norm_num_groups=4,
-        attention_head_dim=4,
-    ).save_pretrained(tmp_path / "sd" / "unet")
-    AutoencoderKL(
-        in_channels=3,
-        out_channels=3,
-        latent_channels=4,
-        block_out_channels=(8, 8),
-        down_block_types=("DownEncoderBlock2D",) * 2,
-        up_block_types=("UpDecoderBlock2D",) * 2,
-        norm_num_groups=4,
-        layers_per_block=1,
-    ).save_pretrained(tmp_path / "sd" / "vae")
+    tiny_sd_unet(in_channels=4, cross_attention_dim=12).save_pretrained(tmp_path / "sd" / "unet")
+    tiny_vae().save_pretrained(tmp_path / "sd" / "vae")
     sd_unet = UNet2DConditionModel.from_pretrained(tmp_path / "sd" / "unet")
     model = RelightDiffusion.from_pretrained_sd(tmp_path / "sd", tiny_config(resolution=16)).eval()
     assert model.config.space == "latent" and model.config.cross_attention_dim == 12
