@@ -234,8 +234,11 @@ class RelightDiffusion(nn.Module):
             raise ValueError("this model also needs the source light's code, shaped like target_code")
         return torch.cat([target_code, source_code], dim=-1)
 
-    def hint(self, conditioning: Tensor, target_code: Tensor, source_code: Tensor | None) -> Tensor:
-        """The shading hint ``[B,3,R,R]`` in model space (``hint.py``); it needs the source light's code."""
+    def hint(self, conditioning: Tensor, target_code: Tensor, source_code: Tensor | None) -> Tensor | None:
+        """The shading hint ``[B,3,R,R]`` in model space (``hint.py``; it needs the source light's code), or
+        ``None`` for a model without one. Compute it once per conditioning and pass it to :meth:`forward`."""
+        if not self.config.shading_hint:
+            return None
         if source_code is None or source_code.shape != target_code.shape:
             raise ValueError(
                 "the shading hint needs the source light's code, shaped like target_code [B, 10]"
@@ -243,11 +246,11 @@ class RelightDiffusion(nn.Module):
         sigma = self.config.hint_blur * conditioning.shape[-1]
         return lambertian_hint(conditioning, target_code, source_code, blur_sigma=sigma)
 
-    def offset(self, conditioning: Tensor, target_code: Tensor, source_code: Tensor | None) -> Tensor | None:
+    def offset(self, hint: Tensor | None) -> Tensor | None:
         """``E(hint)``, what the denoised variable is measured from with ``residual``; ``None`` without."""
-        if not self.config.residual:
+        if not self.config.residual or hint is None:
             return None
-        return self.encode(self.hint(conditioning, target_code, source_code))
+        return self.encode(hint)
 
     def forward(
         self,
@@ -256,10 +259,12 @@ class RelightDiffusion(nn.Module):
         conditioning: Tensor,
         target_code: Tensor,
         source_code: Tensor | None = None,
+        hint: Tensor | None = None,
     ) -> Tensor:
         """Velocity prediction ``v [B,C,h,w]`` for ``noisy [B,C,h,w]`` at ``timesteps [B]``.
 
-        ``conditioning [B,8,R,R]`` (see ``conditioning.py``); ``target_code [B,10]`` (and ``source_code``).
+        ``conditioning [B,8,R,R]`` (see ``conditioning.py``); ``target_code [B,10]`` (and ``source_code``);
+        ``hint``: the shading hint from :meth:`hint` (computed here when not given).
         """
         if conditioning.ndim != 4 or conditioning.shape[1] != CONDITIONING_CHANNELS:
             raise ValueError(
@@ -267,7 +272,9 @@ class RelightDiffusion(nn.Module):
             )
         code = self.light_input(target_code, source_code)
         if self.config.shading_hint:
-            conditioning = torch.cat([conditioning, self.hint(conditioning, target_code, source_code)], dim=1)
+            if hint is None:
+                hint = self.hint(conditioning, target_code, source_code)
+            conditioning = torch.cat([conditioning, hint], dim=1)
         tokens = self.light_tokens(code)
         down, mid = self.controlnet(
             noisy,
@@ -303,8 +310,9 @@ class RelightDiffusion(nn.Module):
         """
         scheduler = make_ddim_scheduler(self.config.scheduler)
         device = conditioning.device
+        hint = self.hint(conditioning, target_code, source_code)
         sample = ddim_sample(
-            lambda x, t: self(x, t, conditioning, target_code, source_code),
+            lambda x, t: self(x, t, conditioning, target_code, source_code, hint=hint),
             self.sample_shape(conditioning.shape[0]),
             scheduler,
             num_steps,
@@ -312,7 +320,7 @@ class RelightDiffusion(nn.Module):
             device,
             noise=noise,
         )
-        offset = self.offset(conditioning, target_code, source_code)
+        offset = self.offset(hint)
         return self.decode(sample if offset is None else sample + offset).clamp(-1.0, 1.0)
 
 

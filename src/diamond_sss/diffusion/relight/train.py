@@ -76,7 +76,8 @@ def training_loss(
     Timesteps and noise come from ``generator`` (CPU) and are moved to the batch's device.
     """
     device = batch["target"].device
-    offset = model.offset(batch["conditioning"], batch["target_code"], batch["source_code"])
+    hint = model.hint(batch["conditioning"], batch["target_code"], batch["source_code"])
+    offset = model.offset(hint)
     target = model.encode(batch["target"])
     if offset is not None:
         target = target - offset
@@ -85,17 +86,20 @@ def training_loss(
     timesteps = torch.randint(0, alphas.shape[0], (count,), generator=generator).to(device)
     noise = torch.randn(target.shape, generator=generator).to(device=device, dtype=target.dtype)
     noisy = model.train_scheduler.add_noise(target, noise, timesteps)
-    v = model(noisy, timesteps, batch["conditioning"], batch["target_code"], batch["source_code"])
+    v = model(noisy, timesteps, batch["conditioning"], batch["target_code"], batch["source_code"], hint=hint)
     terms = {"v_mse": (v.float() - v_target(target, noise, alphas, timesteps)).square().mean()}
     clean = model.decode(with_offset(predicted_clean(noisy, v.float(), alphas, timesteps), offset))
     terms.update(image_losses(clean, batch["target"], weights, lpips))
     if with_cycle:
         back_conditioning = torch.cat([clean, batch["maps"]], dim=1)
-        back_offset = model.offset(back_conditioning, batch["source_code"], batch["target_code"])
+        back_hint = model.hint(back_conditioning, batch["source_code"], batch["target_code"])
+        back_offset = model.offset(back_hint)
         source = with_offset(model.encode(batch["source"]), back_offset, sign=-1.0)
         back_noise = torch.randn(source.shape, generator=generator).to(device=device, dtype=source.dtype)
         back_noisy = model.train_scheduler.add_noise(source, back_noise, timesteps)
-        back_v = model(back_noisy, timesteps, back_conditioning, batch["source_code"], batch["target_code"])
+        back_v = model(
+            back_noisy, timesteps, back_conditioning, batch["source_code"], batch["target_code"], hint=back_hint
+        )
         back_clean = model.decode(
             with_offset(predicted_clean(back_noisy, back_v.float(), alphas, timesteps), back_offset)
         )
