@@ -55,7 +55,11 @@ def ensure_object(spec: str, size: int, spp: int) -> Path:
 def resolve_object(spec: str, size: int, spp: int) -> Path:
     """An existing data folder as it is, else ``shape:material`` rendered by :func:`ensure_object`."""
     path = Path(spec)
-    return path if path.is_dir() else ensure_object(spec, size, spp)
+    if path.is_dir():
+        return path
+    if spec.count(":") != 1:
+        raise SystemExit(f"--objects: {spec!r} is neither a data folder nor a shape:material pair")
+    return ensure_object(spec, size, spp)
 
 
 def target_lines(rows: list[dict], method: str) -> list[str]:
