@@ -135,6 +135,12 @@ def test_bad_inputs_have_clear_errors(tmp_path):
             torch.zeros(1, 8, 8, 1),
             8,
         )
+    normals = torch.zeros(1, 8, 8, 3)
+    normals[0, 3, 3, 0] = float("nan")
+    with pytest.raises(ValueError, match="normals map has non-finite values"):
+        conditioning_image(
+            torch.zeros(1, 8, 8, 3), torch.zeros(1, 8, 8, 1), normals, torch.ones(1, 8, 8, 1), 8
+        )
     with pytest.raises(ValueError, match="resolution"):
         tiny_config(resolution=15)
 

@@ -70,6 +70,8 @@ def conditioning_image(
             raise ValueError(f"{name} must have shape [B,H,W,{channels}], got {tuple(tensor.shape)}")
         if tensor.shape[:3] != batch_hw:
             raise ValueError(f"{name} has shape {tuple(tensor.shape)}, expected [B,H,W] = {tuple(batch_hw)}")
+        if not bool(torch.isfinite(tensor).all()):
+            raise ValueError(f"{name} map has non-finite values (NaN or inf): check the image or geometry source")
     keep = (mask > MASK_THRESHOLD).to(source_linear.dtype)
     stacked = torch.cat(
         [

@@ -164,13 +164,15 @@ def _generate(
     maps = geometry.maps(dataset, view, rgb, mask)
     device = next(model.parameters()).device
     count = len(lights)
-    cond = (
-        conditioning_image(
+    try:
+        single = conditioning_image(
             rgb[None], maps.nearness[None], maps.normals[None], mask[None], model.config.resolution
         )
-        .expand(count, -1, -1, -1)
-        .to(device)
-    )
+    except ValueError as error:
+        raise ValueError(
+            f"view {view} of {dataset.json_path} (geometry {geometry.key()}): {error}"
+        ) from error
+    cond = single.expand(count, -1, -1, -1).to(device)
     shape = model.sample_shape(1)[1:]
     out = torch.zeros(count, 3, model.config.resolution, model.config.resolution)
     for sample in range(samples):
