@@ -23,12 +23,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.geometry import StoredMapsGeometry
 from diamond_sss.diffusion.relight.baselines import lambertian_relight
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, model_to_image
+from diamond_sss.diffusion.relight.config import RelightModelConfig
+from diamond_sss.diffusion.relight.hint import lambertian_hint
 from diamond_sss.diffusion.relight.inference import load_model, relight_view
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.evaluation.figures import save_image_grid, to_display
@@ -37,6 +40,16 @@ from diamond_sss.evaluation.metrics import image_metrics
 METHODS = ("model", "source", "lambertian", "hint")
 FIGURE_METHODS = ("lambertian", "hint", "model")
 RESULTS = Path(__file__).resolve().parent / "results" / "relight_quality"
+
+
+def shading_hint(model, conditioning: Tensor, target_codes: Tensor, source_code: Tensor) -> Tensor:
+    """The model's own hint, or the default configuration's for a model trained without one."""
+    source_codes = source_code.expand_as(target_codes)
+    hint = model.hint(conditioning, target_codes, source_codes)
+    if hint is None:
+        sigma = RelightModelConfig().hint_blur * conditioning.shape[-1]
+        hint = lambertian_hint(conditioning, target_codes, source_codes, blur_sigma=sigma)
+    return hint
 
 
 def evaluate_object(
@@ -95,9 +108,7 @@ def evaluate_object(
                     dataset.light_positions[targets],
                 )
             ),
-            "hint": list(
-                model_to_image(model.hint(conditioning, codes[targets], codes[[source_light] * len(targets)]))
-            ),
+            "hint": list(model_to_image(shading_hint(model, conditioning, codes[targets], codes[source_light]))),
         }
         for i, light in enumerate(targets):
             truth = dataset.load(dataset.observation_index(view, light))
