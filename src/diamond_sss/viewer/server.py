@@ -7,7 +7,6 @@ re-rendered only when the client's camera or the GUI changed.
 
 from __future__ import annotations
 
-import threading
 import time
 from pathlib import Path
 
@@ -35,7 +34,6 @@ class SceneViewer:
         self.server, self.scene = server, scene.eval()
         self._version = 0
         self._shown: dict[int, tuple[float, int]] = {}
-        self._lock = threading.Lock()
         gui = server.gui
         with gui.add_folder("Light"):
             self.azimuth = gui.add_slider(
@@ -105,8 +103,7 @@ class SceneViewer:
             state = (camera.update_timestamp, self._version)
             if camera.update_timestamp == 0.0 or self._shown.get(client_id) == state:
                 continue
-            with self._lock:
-                image = self.frame(camera.wxyz, camera.position, camera.fov, camera.aspect)
+            image = self.frame(camera.wxyz, camera.position, camera.fov, camera.aspect)
             client.scene.set_background_image(image, format="jpeg")
             self._shown[client_id] = state
             rendered += 1
