@@ -47,8 +47,11 @@ def shading_hint(model, conditioning: Tensor, target_codes: Tensor, source_code:
     source_codes = source_code.expand_as(target_codes)
     hint = model.hint(conditioning, target_codes, source_codes)
     if hint is None:
-        sigma = RelightModelConfig().hint_blur * conditioning.shape[-1]
-        hint = lambertian_hint(conditioning, target_codes, source_codes, blur_sigma=sigma)
+        default = RelightModelConfig()
+        sigmas = tuple(blur * conditioning.shape[-1] for blur in default.hint_blurs)
+        hint = lambertian_hint(
+            conditioning, target_codes, source_codes, blur_sigmas=sigmas, wraps=default.hint_wraps
+        )
     return hint
 
 

@@ -13,7 +13,7 @@ from diamond_sss.diffusion.common.sampling import SchedulerConfig, make_ddpm_sch
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, image_to_model, model_to_image
 from diamond_sss.diffusion.relight.config import RelightModelConfig
-from diamond_sss.diffusion.relight.hint import direction_from_code, lambertian_hint
+from diamond_sss.diffusion.relight.hint import direction_from_code, diffused_shading, lambertian_hint
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 
@@ -209,13 +209,53 @@ def test_lambertian_hint_known_answer():
     assert torch.allclose(hint[inside], torch.full_like(hint[inside], 0.4), atol=1e-4)
     assert float(hint[~inside].abs().max()) == 0.0
     # Screen-space diffusion inside the mask leaves uniform shading unchanged.
-    diffused = model_to_image(lambertian_hint(cond, frontal, at_60, blur_sigma=1.5))
+    diffused = model_to_image(lambertian_hint(cond, frontal, at_60, blur_sigmas=(1.5,)))
     assert torch.allclose(diffused, hint, atol=1e-4)
     # Twice as far away: a quarter of the light.
     far = light_code(torch.tensor([[0.0, 0.0, -6.0]]), w2c, torch.zeros(3), 1.0)
     assert torch.allclose(
         model_to_image(lambertian_hint(cond, far, at_60))[inside], torch.tensor(0.1), atol=1e-4
     )
+
+
+def test_hint_fits_the_scattering_of_the_source():
+    # A sphere rendered with wrap 0.5 and a 2 px diffusion under one light: the hint, choosing from a grid that
+    # holds that pair, predicts the same rendering under another light exactly, and a Lambertian-only grid not.
+    size = 24
+    ys, xs = torch.meshgrid(torch.linspace(-1.2, 1.2, size), torch.linspace(-1.2, 1.2, size), indexing="ij")
+    inside = (xs.square() + ys.square() < 1.0).float()
+    z = -(1.0 - xs.square() - ys.square()).clamp_min(0.0).sqrt()
+    normals = torch.stack([xs, ys, z], dim=-1)[None] * inside[None, ..., None]
+    mask = inside[None, ..., None]
+    w2c = torch.eye(4)[None]
+    source_code = light_code(torch.tensor([[2.5, -1.0, -1.5]]), w2c, torch.zeros(3), 1.0)
+    target_code = light_code(torch.tensor([[-2.0, 0.5, -2.0]]), w2c, torch.zeros(3), 1.0)
+    keep = mask.permute(0, 3, 1, 2)
+    normals_chw = normals.permute(0, 3, 1, 2)
+    albedo = torch.tensor([0.9, 0.6, 0.4])[None, :, None, None] * 3.0
+
+    def render(code):
+        return (albedo * diffused_shading(normals_chw, keep, code, wrap=0.5, blur_sigma=2.0)).clamp(0.0, 1.0)
+
+    cond = conditioning_image(render(source_code).permute(0, 2, 3, 1), mask, normals, mask, size)
+    truth = render(target_code)
+    fitted = model_to_image(
+        lambertian_hint(cond, target_code, source_code, blur_sigmas=(0.0, 1.0, 2.0, 4.0), wraps=(0.0, 0.5, 1.0))
+    ).permute(0, 3, 1, 2)
+    assert torch.allclose(fitted, truth, atol=1e-4)
+    lambertian = model_to_image(lambertian_hint(cond, target_code, source_code)).permute(0, 3, 1, 2)
+    assert float((lambertian - truth).abs().max()) > 0.05
+
+
+def test_config_reads_models_saved_with_one_hint_blur():
+    legacy = RelightModelConfig().to_dict()
+    del legacy["hint_blurs"], legacy["hint_wraps"]
+    legacy["hint_blur"] = 0.03125
+    config = RelightModelConfig.from_dict(legacy)
+    assert config.hint_blurs == (0.03125,) and config.hint_wraps == (0.0,)
+    assert RelightModelConfig.from_dict(config.to_dict()) == config
+    with pytest.raises(ValueError, match="hint_blurs and hint_wraps"):
+        RelightModelConfig(hint_wraps=())
 
 
 def test_residual_model_adds_the_hint_back():

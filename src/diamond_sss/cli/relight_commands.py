@@ -19,6 +19,7 @@ def finetune_relight(
     resolution: int = 64,
     use_source_light: bool = False,
     shading_hint: bool = True,
+    augment: bool = True,
     lpips_weights: str | None = None,
     mixed_precision: str = "no",
     time_limit_s: float | None = None,
@@ -43,6 +44,7 @@ def finetune_relight(
         resolution: model resolution in pixels (pixel-space default model: 64).
         use_source_light: also condition on the source light's code.
         shading_hint: give the ControlNet the Lambertian shading hint and denoise the residual from it.
+        augment: mirror the pairs and vary their exposure and tint (exact symmetries of light transport).
         lpips_weights: LPIPS (VGG) weights in safetensors; the LPIPS term is skipped without them.
         mixed_precision: no | fp16 | bf16 (GPU only).
         time_limit_s: stop after this much wall time (checkpoint and weights are written).
@@ -50,6 +52,7 @@ def finetune_relight(
         resume: continue from the newest checkpoint in <out>/checkpoints.
         quiet: no log lines.
     """
+    from diamond_sss.diffusion.relight.augment import RelightAugmentConfig
     from diamond_sss.diffusion.relight.config import RelightModelConfig
     from diamond_sss.diffusion.relight.data import load_finetune_views, load_relight_views
     from diamond_sss.diffusion.relight.model import RelightDiffusion
@@ -81,6 +84,7 @@ def finetune_relight(
         mixed_precision=mixed_precision,
         time_limit_s=time_limit_s,
         checkpoint_every=checkpoint_every,
+        augment=RelightAugmentConfig() if augment else RelightAugmentConfig(mirror=False, exposure=0.0, tint=0.0),
     )
     console = Console()
     lpips = load_lpips(lpips_weights)

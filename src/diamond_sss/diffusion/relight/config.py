@@ -15,6 +15,12 @@ CONDITIONING_CHANNELS = 8
 HINT_CHANNELS = 3
 """The shading hint (``hint.py``) the model appends to the conditioning image when ``shading_hint`` is on."""
 
+TUPLE_KEYS = ("block_out_channels", "hint_blurs", "hint_wraps")
+"""Config fields stored as JSON lists."""
+
+LEGACY_HINT_BLUR_KEY = "hint_blur"
+"""Models saved before the scattering fit had one blur and no wrap: read as ``hint_blurs=(b,), hint_wraps=(0,)``."""
+
 
 @dataclass(frozen=True)
 class RelightModelConfig:
@@ -31,8 +37,10 @@ class RelightModelConfig:
         light_tokens: number of cross-attention tokens made from the light code(s).
         use_source_light: also give the source light's code (timestep embedding and tokens).
         shading_hint: append the directional Lambertian re-shading (``hint.py``) to the ControlNet's input.
-        hint_blur: screen-space diffusion of the hint's shading, a Gaussian of ``hint_blur * resolution``
-            pixels (``hint.py``; 1/32 = 2 px at 64 px, 0 = plain Lambertian).
+        hint_blurs: screen-space diffusions of the hint's shading to choose from, Gaussians of
+            ``blur * resolution`` pixels (``hint.py``; 1/32 = 2 px at 64 px, 0 = none).
+        hint_wraps: wrap-lighting offsets of the hint's shading to choose from (``hint.py``; 0 = Lambertian).
+            Each image's pair is fitted to its source image; single values fix the scattering.
         residual: denoise ``target - hint`` (in the denoised space) instead of the target itself, so the
             network learns the correction to Lambertian shading; needs ``shading_hint``.
         norm_num_groups: GroupNorm groups.
@@ -49,7 +57,8 @@ class RelightModelConfig:
     light_tokens: int = 4
     use_source_light: bool = False
     shading_hint: bool = True
-    hint_blur: float = 1.0 / 32.0
+    hint_blurs: tuple[float, ...] = (1.0 / 64.0, 1.0 / 32.0, 3.0 / 64.0, 1.0 / 16.0, 3.0 / 32.0)
+    hint_wraps: tuple[float, ...] = (0.0, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)
     residual: bool = True
     norm_num_groups: int = 8
     scheduler: SchedulerConfig = field(default_factory=SchedulerConfig)
@@ -71,6 +80,12 @@ class RelightModelConfig:
             raise ValueError(
                 "residual=True denoises the offset from the shading hint: it needs shading_hint=True"
             )
+        if not self.hint_blurs or not self.hint_wraps:
+            raise ValueError("hint_blurs and hint_wraps need at least one value each")
+        if min(self.hint_blurs) < 0.0 or min(self.hint_wraps) < 0.0:
+            raise ValueError(
+                f"hint_blurs and hint_wraps must be >= 0, got {self.hint_blurs} and {self.hint_wraps}"
+            )
         if self.scheduler.prediction_type != "v_prediction":
             raise ValueError("the relighting model is trained with v-prediction")
 
@@ -86,18 +101,23 @@ class RelightModelConfig:
 
     def to_dict(self) -> dict:
         out = asdict(self)
-        out["block_out_channels"] = list(self.block_out_channels)
+        for key in TUPLE_KEYS:
+            out[key] = list(out[key])
         return out
 
     @classmethod
     def from_dict(cls, data: dict) -> RelightModelConfig:
-        known = {f.name for f in fields(cls)}
+        known = {f.name for f in fields(cls)} | {LEGACY_HINT_BLUR_KEY}
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"unknown relighting model config keys: {unknown}")
         data = dict(data)
-        if "block_out_channels" in data:
-            data["block_out_channels"] = tuple(data["block_out_channels"])
+        if LEGACY_HINT_BLUR_KEY in data:
+            data.setdefault("hint_blurs", [data.pop(LEGACY_HINT_BLUR_KEY)])
+            data.setdefault("hint_wraps", [0.0])
+        for key in TUPLE_KEYS:
+            if key in data:
+                data[key] = tuple(data[key])
         if isinstance(data.get("scheduler"), dict):
             data["scheduler"] = SchedulerConfig(**data["scheduler"])
         return cls(**data)

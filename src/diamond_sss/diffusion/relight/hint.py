@@ -1,16 +1,21 @@
-"""Shading hint: a directional Lambertian re-shading of the source image, computed from the model's inputs.
+"""Shading hint: a Lambertian re-shading of the source image with fitted scattering, from the model's inputs.
 
 Like DiLightNet's radiance hints, the hint gives the network the target light's coarse shading so it only has
-to learn what Lambertian shading misses (subsurface glow, shadows, highlights). Everything comes from the
+to learn what the hint misses (shadows, highlights, the exact scattering profile). Everything comes from the
 conditioning image and the light codes, so every caller gets the same hint:
 
 - light direction ``l`` (unit, source camera frame) from the degree-1 SH terms of the code
   ``(Y_1, Y_2, Y_3) = C1 (-y, z, -x)``; distance ``d`` (object radii) from its last entry;
-- shading ``s = max(0, n . l) / d^2`` with the conditioning's camera-space normals ``n``, diffused over the
-  surface in screen space like screen-space subsurface scattering: ``s <- (G_sigma * (s m)) / (G_sigma * m)``
-  inside the mask ``m`` (``G_sigma`` a Gaussian of ``sigma`` pixels; ``sigma = 0`` keeps plain Lambertian
-  shading). On the held-out relighting objects sigma = 2 px at 64 px scores 22.19 dB against 21.74 without;
+- wrapped shading ``s = max(0, (n . l + w) / (1 + w)) / d^2`` with the conditioning's camera-space normals
+  ``n`` (wrap ``w = 0`` is Lambertian; ``w > 0`` lets light reach past the terminator as in translucent
+  materials), diffused over the surface in screen space like screen-space subsurface scattering:
+  ``s <- (G_sigma * (s m)) / (G_sigma * m)`` inside the mask ``m`` (``G_sigma`` a Gaussian of ``sigma``
+  pixels; ``sigma = 0`` keeps it sharp);
 - per-channel albedo fitted to the linear source image over the mask, ``a_c = sum I_c s_src / sum s_src^2``;
+- the scattering ``(w, sigma)`` chosen per image from the given grids as the pair whose ``a_c s_src`` best
+  explains the source image (squared sRGB error over the mask): a material estimate from the source alone.
+  On the eight validation objects (the four fine-tuning objects and four others, none of the benchmark's)
+  the fit raises the hint from 18.46 dB (``w = 0``, ``sigma = 2`` px) to 19.77 dB;
 - hint ``a_c s_tgt`` (linear radiance in [0, 1], 0 outside the mask), returned in model space ``2 srgb - 1``.
 """
 
@@ -49,24 +54,45 @@ def gaussian_blur(image: Tensor, sigma: float) -> Tensor:
     return F.conv2d(F.pad(image, (0, 0, radius, radius), mode="replicate"), vertical, groups=channels)
 
 
-def lambertian_hint(
-    conditioning: Tensor, target_code: Tensor, source_code: Tensor, blur_sigma: float = 0.0
+def diffused_shading(
+    normals: Tensor, keep: Tensor, code: Tensor, wrap: float, blur_sigma: float
 ) -> Tensor:
-    """Hint ``[B,3,R,R]`` (model space) for ``conditioning [B,8,R,R]``, light codes ``[B,10]`` and a screen-space
-    diffusion of ``blur_sigma`` pixels."""
+    """Wrapped, screen-space diffused shading ``s [B,1,H,W]`` (module doc) of camera-space ``normals [B,3,H,W]``
+    inside ``keep [B,1,H,W]`` for light codes ``[B,10]``."""
+    direction, distance = direction_from_code(code)
+    cosine = torch.einsum("bchw,bc->bhw", normals, direction).unsqueeze(1)
+    wrapped = ((cosine + wrap) / (1.0 + wrap)).clamp_min(0.0) * keep
+    diffused = gaussian_blur(wrapped, blur_sigma) / gaussian_blur(keep, blur_sigma).clamp_min(1e-3) * keep
+    return diffused / distance.square().clamp_min(1e-8)[..., None, None]
+
+
+def lambertian_hint(
+    conditioning: Tensor,
+    target_code: Tensor,
+    source_code: Tensor,
+    blur_sigmas: tuple[float, ...] = (0.0,),
+    wraps: tuple[float, ...] = (0.0,),
+) -> Tensor:
+    """Hint ``[B,3,R,R]`` (model space) for ``conditioning [B,8,R,R]`` and light codes ``[B,10]``; the scattering
+    of each image is the pair of ``wraps`` x ``blur_sigmas`` (pixels) that best explains its source image."""
     source = srgb_to_linear(((conditioning[:, 0:3] + 1.0) * 0.5).clamp(0.0, 1.0))
+    source_srgb = linear_to_srgb(source)
     normals = F.normalize(conditioning[:, 4:7], dim=1, eps=1e-8)
     keep = ((conditioning[:, 7:8] + 1.0) * 0.5 > MASK_THRESHOLD).to(source.dtype)
-
-    def shading(code: Tensor) -> Tensor:
-        direction, distance = direction_from_code(code)
-        cosine = torch.einsum("bchw,bc->bhw", normals, direction).unsqueeze(1).clamp_min(0.0) * keep
-        diffused = gaussian_blur(cosine, blur_sigma) / gaussian_blur(keep, blur_sigma).clamp_min(1e-3) * keep
-        return diffused / distance.square().clamp_min(1e-8)[..., None, None]
-
-    shading_source = shading(source_code)
-    albedo = (source * shading_source).sum((2, 3), keepdim=True) / shading_source.square().sum(
-        (2, 3), keepdim=True
-    ).clamp_min(1e-8)
-    relit = (albedo * shading(target_code)).clamp(0.0, 1.0)
-    return linear_to_srgb(relit) * 2.0 - 1.0
+    best_error = torch.full((source.shape[0],), math.inf, dtype=source.dtype, device=source.device)
+    best_relit = torch.zeros_like(source)
+    for wrap in wraps:
+        for sigma in blur_sigmas:
+            shading_source = diffused_shading(normals, keep, source_code, wrap, sigma)
+            albedo = (source * shading_source).sum((2, 3), keepdim=True) / shading_source.square().sum(
+                (2, 3), keepdim=True
+            ).clamp_min(1e-8)
+            explained = linear_to_srgb((albedo * shading_source).clamp(0.0, 1.0))
+            error = ((explained - source_srgb).square() * keep).sum((1, 2, 3))
+            better = error < best_error
+            if not bool(better.any()):
+                continue
+            relit = (albedo * diffused_shading(normals, keep, target_code, wrap, sigma)).clamp(0.0, 1.0)
+            best_relit = torch.where(better[:, None, None, None], relit, best_relit)
+            best_error = torch.where(better, error, best_error)
+    return linear_to_srgb(best_relit) * 2.0 - 1.0

@@ -243,8 +243,10 @@ class RelightDiffusion(nn.Module):
             raise ValueError(
                 "the shading hint needs the source light's code, shaped like target_code [B, 10]"
             )
-        sigma = self.config.hint_blur * conditioning.shape[-1]
-        return lambertian_hint(conditioning, target_code, source_code, blur_sigma=sigma)
+        sigmas = tuple(blur * conditioning.shape[-1] for blur in self.config.hint_blurs)
+        return lambertian_hint(
+            conditioning, target_code, source_code, blur_sigmas=sigmas, wraps=self.config.hint_wraps
+        )
 
     def offset(self, hint: Tensor | None) -> Tensor | None:
         """``E(hint)``, what the denoised variable is measured from with ``residual``; ``None`` without."""

@@ -17,6 +17,7 @@ from torch import Tensor, nn
 from diamond_sss.diffusion.common.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from diamond_sss.diffusion.common.ema import EMA
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
+from diamond_sss.diffusion.relight.augment import RelightAugmentConfig, augment_batch
 from diamond_sss.diffusion.relight.data import RelightViews
 from diamond_sss.diffusion.relight.losses import RelightLossWeights, image_losses
 from diamond_sss.diffusion.relight.model import RelightDiffusion
@@ -41,6 +42,7 @@ class RelightTrainConfig:
         mixed_precision: accelerate's ``"no"``, ``"fp16"`` or ``"bf16"`` (GPU).
         time_limit_s: stop early (checkpoint and weights written) once this much wall time has passed.
         losses: loss weights.
+        augment: mirror / exposure / tint augmentation of the pairs (``augment.py``).
     """
 
     steps: int = 2000
@@ -56,6 +58,7 @@ class RelightTrainConfig:
     mixed_precision: str = "no"
     time_limit_s: float | None = None
     losses: RelightLossWeights = field(default_factory=RelightLossWeights)
+    augment: RelightAugmentConfig = field(default_factory=RelightAugmentConfig)
 
 
 def step_generator(seed: int, step: int) -> torch.Generator:
@@ -166,6 +169,7 @@ def finetune(
         batch = on_device.batch(
             *[i.to(device) for i in on_device.random_indices(config.batch_size, generator)]
         )
+        batch = augment_batch(batch, config.augment, generator)
         with accelerator.autocast():
             loss, terms = training_loss(
                 unwrapped,

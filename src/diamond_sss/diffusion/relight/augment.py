@@ -1,0 +1,102 @@
+"""Training augmentations of relighting batches that are exact symmetries of light transport.
+
+- mirror: flipping the image left-right is the reflection ``x -> -x`` of the camera frame (OpenCV, x right),
+  so the source and target images, the maps, the normals' x component and the lights' x direction are all
+  mirrored together;
+- exposure and tint: light transport is linear in the light's power, so scaling the source and the target's
+  linear radiance by the same gain ``k_c = 2^(e u) exp(t v_c)`` (``u, v_c ~ U(-1, 1)``) keeps a valid pair
+  (clamped to [0, 1] like a camera's range). It shows the model objects of other brightness and colour than
+  the four fine-tuning objects.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from diamond_sss.diffusion.relight.conditioning import image_to_model, model_to_image
+from diamond_sss.diffusion.relight.hint import direction_from_code
+from diamond_sss.shading.sh import light_sh_encoding
+
+SOURCE_CHANNELS = slice(0, 3)
+"""The source image inside a conditioning image ``[B,8,R,R]``."""
+CONDITIONING_NORMAL_X = 4
+"""Camera-space normal x inside a conditioning image."""
+MAPS_NORMAL_X = 1
+"""Camera-space normal x inside the 5 non-image maps (nearness, normals, mask)."""
+
+
+@dataclass(frozen=True)
+class RelightAugmentConfig:
+    """Augmentations of each training pair (module doc).
+
+    Attributes:
+        mirror: mirror half of the pairs left-right.
+        exposure: log2 range ``e`` of the shared gain (1 = from 1/2 to 2 times; 0 = off).
+        tint: natural-log range ``t`` of the per-channel gains (0.15 = about +-16%; 0 = off).
+    """
+
+    mirror: bool = True
+    exposure: float = 1.0
+    tint: float = 0.15
+
+    def __post_init__(self) -> None:
+        if self.exposure < 0.0 or self.tint < 0.0:
+            raise ValueError(f"exposure and tint must be >= 0, got {self.exposure} and {self.tint}")
+
+
+def mirror_code(code: Tensor) -> Tensor:
+    """Light code ``[...,10]`` of the light mirrored by ``x -> -x`` in the camera frame."""
+    direction, distance = direction_from_code(code)
+    mirrored = direction * torch.tensor([-1.0, 1.0, 1.0], dtype=direction.dtype, device=direction.device)
+    return torch.cat([light_sh_encoding(mirrored, degree=2), distance], dim=-1)
+
+
+def mirror_batch(batch: dict[str, Tensor], chosen: Tensor) -> dict[str, Tensor]:
+    """``batch`` (see ``RelightViews.batch``) with the pairs where ``chosen [B]`` (bool) mirrored left-right."""
+    where = chosen[:, None, None, None]
+    out = dict(batch)
+    for key in ("conditioning", "target", "source", "maps"):
+        flipped = batch[key].flip(-1)
+        normal_x = CONDITIONING_NORMAL_X if key == "conditioning" else MAPS_NORMAL_X if key == "maps" else None
+        if normal_x is not None:
+            flipped = flipped.clone()
+            flipped[:, normal_x] = -flipped[:, normal_x]
+        out[key] = torch.where(where, flipped, batch[key])
+    for key in ("target_code", "source_code"):
+        out[key] = torch.where(chosen[:, None], mirror_code(batch[key]), batch[key])
+    return out
+
+
+def scale_radiance(batch: dict[str, Tensor], gains: Tensor) -> dict[str, Tensor]:
+    """``batch`` with the source and target linear radiance multiplied by ``gains [B,3]`` (clamped to [0, 1])."""
+
+    def scaled(model_space: Tensor) -> Tensor:
+        return image_to_model(model_to_image(model_space) * gains[:, None, None, :])
+
+    out = dict(batch)
+    out["source"] = scaled(batch["source"])
+    out["target"] = scaled(batch["target"])
+    conditioning = batch["conditioning"].clone()
+    conditioning[:, SOURCE_CHANNELS] = scaled(batch["conditioning"][:, SOURCE_CHANNELS])
+    out["conditioning"] = conditioning
+    return out
+
+
+def augment_batch(
+    batch: dict[str, Tensor], config: RelightAugmentConfig, generator: torch.Generator
+) -> dict[str, Tensor]:
+    """Randomly mirrored and re-exposed ``batch``; the draws come from ``generator`` (CPU)."""
+    count = batch["target"].shape[0]
+    device = batch["target"].device
+    chosen = torch.rand(count, generator=generator) < 0.5
+    exposure = torch.rand(count, 1, generator=generator) * 2.0 - 1.0
+    tint = torch.rand(count, 3, generator=generator) * 2.0 - 1.0
+    if config.mirror:
+        batch = mirror_batch(batch, chosen.to(device))
+    if config.exposure > 0.0 or config.tint > 0.0:
+        gains = torch.exp2(config.exposure * exposure) * torch.exp(config.tint * tint)
+        batch = scale_radiance(batch, gains.to(device=device, dtype=batch["target"].dtype))
+    return batch
