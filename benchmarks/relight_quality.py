@@ -5,13 +5,18 @@ the view's first light is relit to every other light and compared with the rende
 PSNR / SSIM on sRGB images in [0,1], full frame, black background. Baselines: the unchanged source image,
 and Lambertian re-shading from the stored normals (``diamond_sss.diffusion.relight.baselines``). The model
 and the Lambertian baseline use the same stored depth / normal maps (``--geometry maps``). The row ``hint``
-is the model's own input, the directional Lambertian shading hint (``diamond_sss.diffusion.relight.hint``),
+is the model's own input, the shading hint with its fitted scattering (``diamond_sss.diffusion.relight.hint``),
 to show what the network adds to it.
 
-    for spec in bunny:glazed_wax:11 blob:wax:12 torus:marble:13; do IFS=: read -r s m seed <<< "$spec"
-      python -m diamond_sss.synth.cli --shape $s --material $m --seed $seed --out /tmp/relight_bench/${s}_${m} \\
+The held-out set: nine objects covering the six materials, none of them a fine-tuning object (those are
+blob/soap, bust/marble, sphere/skin, torus/jade) or a validation object used to choose the hint and the model
+(blob/jade, bunny/skin, bust/soap, sphere/glazed_wax):
+
+    for spec in bunny:glazed_wax:11 blob:wax:12 torus:marble:13 torus:skin:31 bunny:jade:32 sphere:marble:33 \
+        bust:wax:34 blob:glazed_wax:35 sphere:soap:36; do IFS=: read -r s m seed <<< "$spec"
+      diamond-sss synth --shape $s --material $m --seed $seed --out /tmp/relight_bench/heldout/${s}_${m} \
         --views 40 --lights 24 --test-views 0 --test-lights 0 --size 64 --spp 64 --subset relight:2x8; done
-    python benchmarks/relight_quality.py --data /tmp/relight_bench/* --model src/diamond_sss/assets/models/relight
+    python benchmarks/relight_quality.py --data /tmp/relight_bench/heldout/*
 """
 
 from __future__ import annotations
@@ -203,6 +208,9 @@ def main() -> None:
     print(f"{'method':<12}{'PSNR':>8}{'SSIM':>8}")
     for method, values in summary["overall"].items():
         print(f"{method:<12}{values['psnr']:>8.2f}{values['ssim']:>8.3f}")
+    print(f"\n{'object (PSNR)':<20}" + "".join(f"{m:>12}" for m in METHODS))
+    for name, values in summary["per_object"].items():
+        print(f"{name:<20}" + "".join(f"{values[m]['psnr']:>12.2f}" for m in METHODS))
     print(
         f"margin over baselines (dB): {summary['margin_db']}; beats both by 2 dB: {summary['beats_baselines_by_2db']}"
     )

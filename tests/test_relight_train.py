@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+from collections import Counter
 
 import pytest
 import torch
 from test_relight_model import tiny_model
 
+from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.embedded import embedded_dataset
 from diamond_sss.data.errors import DataError
 from diamond_sss.diffusion.common.ema import EMA
@@ -40,6 +42,24 @@ def test_batches_fix_the_view_and_change_the_light(views):
     # The conditioning's geometry channels are those of the sample's view, whatever the lights.
     assert torch.equal(batch["conditioning"][:, 3:], views.maps[view])
     assert torch.equal(batch["target"], views.images[view, target])
+
+
+def test_views_with_few_lights_are_used_and_padding_never_drawn():
+    # torus_jade holds a relighting subset (views x 10 lights) and a novel-view subset (views x 3 lights).
+    root = embedded_dataset("finetune/torus_jade")
+    views = load_relight_views([root], resolution=16)
+    per_view = Counter(obs.view for obs in OLATDataset(root).observations)
+    assert sorted(views.light_counts.tolist()) == sorted(per_view.values())
+    assert 3 in per_view.values() and len(views.selection["images"]) == sum(per_view.values())
+    view, source, target = views.random_indices(4000, torch.Generator().manual_seed(1))
+    counts = views.light_counts[view]
+    assert bool((source != target).all()) and bool((source < counts).all()) and bool((target < counts).all())
+    # Uniform over ordered pairs: a 3-light view is drawn with probability 6 / sum_v c_v (c_v - 1).
+    pairs = sum(c * (c - 1) for c in per_view.values())
+    few = sum(c * (c - 1) for c in per_view.values() if c == 3) / pairs
+    assert float((counts == 3).float().mean()) == pytest.approx(few, abs=0.03)
+    with pytest.raises(ValueError, match="min_lights"):
+        load_relight_views([embedded_dataset("finetune/torus_jade")], resolution=16, min_lights=1)
 
 
 def test_low_frequency_term_ignores_high_frequencies():

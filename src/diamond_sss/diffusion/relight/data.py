@@ -1,8 +1,9 @@
 """Fine-tuning samples ``(source image, depth, normals, target light, target image)`` with the view fixed.
 
 Taken from the embedded fine-tuning objects (``finetune/<object>``): every view that has at least
-``min_lights`` lit images gives all ordered (source, target) light pairs. The images used are recorded and
-must stay within ``max_fraction`` (7%) of a full capture (views x lights of the object's light stage).
+``min_lights`` lit images gives all ordered (source, target) light pairs, drawn uniformly over all pairs.
+The images used are recorded and must stay within ``max_fraction`` (7%) of a full capture (views x lights of
+the object's light stage).
 """
 
 from __future__ import annotations
@@ -31,13 +32,15 @@ MAX_FRACTION = 0.07
 
 @dataclass
 class RelightViews:
-    """Per-view tensors at the model resolution: ``V`` views, each seen under ``L`` lights.
+    """Per-view tensors at the model resolution: ``V`` views, view ``v`` seen under ``light_counts[v]`` lights
+    (padded to ``L``, the largest count, by repeating its last image; padding is never drawn).
 
     Attributes:
         maps: conditioning maps without the source image ``[V,5,R,R]`` (nearness, normals, mask).
         images: target images in model space ``[V,L,3,R,R]``.
         sources: the same images as linear radiance ``[V,L,R,R,3]`` (to build source conditioning).
         codes: light codes ``[V,L,10]`` in each view's camera frame.
+        light_counts: lights of each view ``[V]`` (int64, >= 2).
         selection: the recorded images (object, view, light, path) and the fraction of a capture used.
     """
 
@@ -45,15 +48,12 @@ class RelightViews:
     images: Tensor
     sources: Tensor
     codes: Tensor
+    light_counts: Tensor
     selection: dict
 
     @property
     def num_views(self) -> int:
         return self.images.shape[0]
-
-    @property
-    def num_lights(self) -> int:
-        return self.images.shape[1]
 
     def batch(self, view: Tensor, source: Tensor, target: Tensor) -> dict[str, Tensor]:
         """Training batch for index tensors ``[B]``: conditioning ``[B,8,R,R]``, target, codes."""
@@ -69,11 +69,14 @@ class RelightViews:
         }
 
     def random_indices(self, batch_size: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
-        """Uniform (view, source light, target light != source light) triples."""
-        view = torch.randint(self.num_views, (batch_size,), generator=generator)
-        source = torch.randint(self.num_lights, (batch_size,), generator=generator)
-        shift = torch.randint(1, self.num_lights, (batch_size,), generator=generator)
-        return view, source, (source + shift) % self.num_lights
+        """(view, source light, target light != source light) triples, uniform over all such pairs."""
+        counts = self.light_counts.cpu()
+        pairs = (counts * (counts - 1)).double()
+        view = torch.multinomial(pairs, batch_size, replacement=True, generator=generator)
+        count = counts[view]
+        source = (torch.rand(batch_size, generator=generator) * count).long()
+        shift = 1 + (torch.rand(batch_size, generator=generator) * (count - 1)).long()
+        return view, source, (source + shift) % count
 
 
 def view_maps(dataset: OLATDataset, view: int, mask: Tensor, resolution: int) -> Tensor:
@@ -93,19 +96,25 @@ def _lit_views(dataset: OLATDataset, min_lights: int) -> dict[int, list[int]]:
     return {v: ix for v, ix in by_view.items() if len(ix) >= min_lights and dataset.has_geometry_maps(v)}
 
 
+def _pad_lights(per_light: Tensor, count: int) -> Tensor:
+    """``[n,...]`` -> ``[count,...]`` by repeating the last entry."""
+    return torch.cat([per_light, per_light[-1:].expand(count - len(per_light), *per_light.shape[1:])])
+
+
 def finetune_object_names() -> list[str]:
     """Embedded fine-tuning objects (``finetune/<object>``)."""
     return [n for n in embedded_dataset_names() if n.startswith(FINETUNE_PREFIX)]
 
 
 def load_relight_views(
-    roots: list[str | Path], resolution: int, min_lights: int = 4, max_fraction: float = MAX_FRACTION
+    roots: list[str | Path], resolution: int, min_lights: int = 2, max_fraction: float = MAX_FRACTION
 ) -> RelightViews:
-    """Collect every view with ``>= min_lights`` images from the data folders ``roots``.
+    """Collect every view with ``>= min_lights`` images (and all its images) from the data folders ``roots``.
 
-    Every view keeps its first ``n`` images, ``n`` the smallest light count among the selected views.
     Raises ``DataError`` when nothing usable is found or the selection exceeds ``max_fraction``.
     """
+    if min_lights < 2:
+        raise ValueError(f"min_lights must be >= 2 (a pair needs two lights), got {min_lights}")
     datasets = [OLATDataset(root, "train") for root in roots]
     lit_views = [_lit_views(dataset, min_lights) for dataset in datasets]
     counts = [len(indices) for views in lit_views for indices in views.values()]
@@ -113,23 +122,24 @@ def load_relight_views(
         raise DataError(
             f"no view with >= {min_lights} lights and depth/normal maps in {[str(r) for r in roots]}"
         )
-    per_view = min(counts)
-    maps, images, sources, codes, records = [], [], [], [], []
+    most = max(counts)
+    maps, images, sources, codes, light_counts, records = [], [], [], [], [], []
     fractions = {}
     for root, dataset, views in zip(roots, datasets, lit_views):
         used = 0
         for view, indices in sorted(views.items()):
-            indices = indices[:per_view]
             rgb, mask = dataset.load_batch(indices)
             lights = torch.tensor([dataset.observations[i].light for i in indices])
             maps.append(view_maps(dataset, view, mask.amax(dim=0), resolution))
             linear = F.interpolate(rgb.permute(0, 3, 1, 2), size=(resolution, resolution), mode="area")
             linear = linear.permute(0, 2, 3, 1).contiguous()
-            sources.append(linear)
-            images.append(image_to_model(linear))
             bounds = dataset.bounds
             w2c = dataset.viewmats[view].expand(len(indices), 4, 4)
-            codes.append(light_code(dataset.light_positions[lights], w2c, bounds.center, bounds.radius))
+            code = light_code(dataset.light_positions[lights], w2c, bounds.center, bounds.radius)
+            sources.append(_pad_lights(linear, most))
+            images.append(_pad_lights(image_to_model(linear), most))
+            codes.append(_pad_lights(code, most))
+            light_counts.append(len(indices))
             used += len(indices)
             records += [
                 {
@@ -152,6 +162,7 @@ def load_relight_views(
         images=torch.stack(images),
         sources=torch.stack(sources),
         codes=torch.stack(codes),
+        light_counts=torch.tensor(light_counts, dtype=torch.int64),
         selection={"images": records, "fraction_of_capture": fractions, "max_fraction": max_fraction},
     )
 

@@ -213,4 +213,10 @@ def finetune(
 
 def asdict_views(views: RelightViews) -> dict[str, Tensor]:
     """The tensor fields of ``views``."""
-    return {"maps": views.maps, "images": views.images, "sources": views.sources, "codes": views.codes}
+    return {
+        "maps": views.maps,
+        "images": views.images,
+        "sources": views.sources,
+        "codes": views.codes,
+        "light_counts": views.light_counts,
+    }
