@@ -14,7 +14,8 @@ from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
-from diamond_sss.pipeline.run import PipelineConfig, run_pipeline, spread_subset
+from diamond_sss.pipeline.run import PipelineConfig, move_aside_if_changed, run_pipeline, spread_subset
+from diamond_sss.utils.io import sha256_json
 
 TRAIN = {"num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "iterations": 2, "raytrace_gaussians": 32,
          "mv_pixels_per_pair": 16, "log_every": 1, "device": "cpu"}
@@ -72,6 +73,22 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
     assert again["psnr"] == result["psnr"]
     with pytest.raises(ValueError, match="other inputs"):
         run_pipeline(data, tmp_path, regime="views=3,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
+
+
+def test_a_run_with_other_inputs_is_moved_aside_not_deleted(tmp_path):
+    out = tmp_path / "diamond"
+    (out / "prelim").mkdir(parents=True)
+    record = json.dumps({"inputs": {"model": "a"}, "stages": {"prelim": {}}})
+    (out / "pipeline.json").write_text(record)
+    assert move_aside_if_changed(out, {"model": "a"}) is None and (out / "prelim").is_dir()
+    moved = move_aside_if_changed(out, {"model": "b"})
+    assert moved == tmp_path / f"diamond.{sha256_json({'model': 'a'})[:8]}"
+    assert (moved / "prelim").is_dir() and not out.exists()
+    # A second stale run with the same inputs does not replace the first one.
+    out.mkdir()
+    (out / "pipeline.json").write_text(record)
+    assert move_aside_if_changed(out, {"model": "b"}) == moved.with_name(moved.name + "-2")
+    assert move_aside_if_changed(tmp_path / "never_run", {"model": "a"}) is None
 
 
 def test_relighting_targets_the_lights_each_view_lacks(setup, tmp_path):

@@ -13,7 +13,8 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
          iterations: int = 1000, augment: str = "auto", dense: bool = True, quiet: bool = False) -> None:
     """SSS-3DGS vs DIAMOND-SSS on a sparse capture of the embedded demo object, on a CPU budget.
 
-    Runs (each resumable under --out): SSS-3DGS (`sss3dgs` preset) on the regime's real images; the DIAMOND-SSS
+    Runs (each resumable under --out; a DIAMOND-SSS run made with other models or settings is moved aside to
+    diamond.<hash>): SSS-3DGS (`sss3dgs` preset) on the regime's real images; the DIAMOND-SSS
     pipeline (preliminary reconstruction, novel-view and relighting diffusion with the shipped models,
     final reconstruction with multi-view losses); with --dense, DIAMOND-SSS on every image as a reference.
     Prints the metrics on novel views under novel lights and writes report.md and comparison.png.
@@ -56,7 +57,7 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
     timed("DIAMOND-SSS", out / "diamond" / "final", lambda: run_pipeline(
         root, out / "diamond", regime=regime, preset="diamond", overrides=overrides,
         config=PipelineConfig(augment=augments, prelim_iterations=max(1, iterations // 3)),
-        show_progress=not quiet))
+        show_progress=not quiet, move_changed_run=True))
     if dense:
         timed("DIAMOND-SSS, all images", out / "dense", lambda: (
             train_run(root, out / "dense", regime="all", preset="diamond", overrides=overrides, resume=True,

@@ -35,7 +35,7 @@ from diamond_sss.pipeline.capture import GeneratedImage, write_capture
 from diamond_sss.training.config import make_config
 from diamond_sss.training.run import evaluate_run, train_run
 from diamond_sss.training.trainer import ImageSource, load_scene
-from diamond_sss.utils.io import atomic_write_json, sha256_file
+from diamond_sss.utils.io import atomic_write_json, sha256_file, sha256_json
 
 AUGMENTS = ("nvs", "relight")
 
@@ -83,6 +83,26 @@ class PipelineManifest:
     def record(self, stage: StageRecord) -> None:
         self.data["stages"][stage.name] = {"seconds": round(stage.seconds, 3), **stage.counts}
         atomic_write_json(self.path, self.data)
+
+
+def move_aside_if_changed(out: Path, inputs: dict) -> Path | None:
+    """Rename a run folder ``out`` whose ``pipeline.json`` records other ``inputs`` (a new model, other data) to
+    ``<out>.<first 8 hex of its inputs' hash>`` (``-2``, ``-3``, ... if taken) and return the new path; ``None``
+    when there is no previous run or it has the same inputs. Nothing is deleted."""
+    manifest = out / "pipeline.json"
+    if not manifest.is_file():
+        return None
+    previous = json.loads(manifest.read_text()).get("inputs")
+    if previous == inputs:
+        return None
+    stem = f"{out.name}.{sha256_json(previous)[:8]}"
+    target = out.with_name(stem)
+    suffix = 2
+    while target.exists():
+        target = out.with_name(f"{stem}-{suffix}")
+        suffix += 1
+    out.rename(target)
+    return target
 
 
 def shipped_augments() -> tuple[str, ...]:
@@ -140,8 +160,12 @@ def _silhouette_ok(path: Path, mask_path: Path | None, reference_alpha: torch.Te
 
 def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "views=5%,lights=5%",
                  preset: str = "diamond", overrides: dict[str, Any] | None = None, seed: int = 0,
-                 config: PipelineConfig | None = None, show_progress: bool = True) -> dict:
-    """Run the stages above into ``out``; returns the final evaluation (plus counts) as a dict."""
+                 config: PipelineConfig | None = None, show_progress: bool = True,
+                 move_changed_run: bool = False) -> dict:
+    """Run the stages above into ``out``; returns the final evaluation (plus counts) as a dict.
+
+    A previous run in ``out`` with other inputs is an error, or with ``move_changed_run`` is moved aside
+    (:func:`move_aside_if_changed`) and the run starts afresh."""
     cfg = config or PipelineConfig()
     unknown = set(cfg.augment) - set(AUGMENTS)
     if unknown:
@@ -161,11 +185,15 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
         from diamond_sss.diffusion.relight.inference import shipped_model_path
 
         model_hashes["relight"] = _model_hash("relight", cfg.relight_model or shipped_model_path())
-    manifest = PipelineManifest(out / "pipeline.json", {
+    inputs = {
         "data": str(Path(data).resolve()), "split": split, "regime": regime, "preset": preset, "seed": seed,
         "overrides": overrides, "pipeline": asdict(cfg) | {"augment": list(cfg.augment)},
         "model_hashes": model_hashes, "data_hash": sha256_file(real.json_path),
-    })
+    }
+    if move_changed_run and (moved := move_aside_if_changed(out, inputs)) is not None:
+        print(f"{out}: the inputs changed (models, data or settings); the previous run was moved to {moved}")
+        out.mkdir(parents=True, exist_ok=True)
+    manifest = PipelineManifest(out / "pipeline.json", inputs)
     real_views = set(selection.views)
     real_lights = set(selection.lights)
     center = real.bounds.center
