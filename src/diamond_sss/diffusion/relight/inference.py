@@ -175,6 +175,10 @@ def _generate(
     cond = single.expand(count, -1, -1, -1).to(device)
     shape = model.sample_shape(1)[1:]
     out = torch.zeros(count, 3, model.config.resolution, model.config.resolution)
+    target_codes = codes[lights].to(device)
+    source_codes = codes[[source_light] * count].to(device)
+    with torch.no_grad():
+        hint = model.hint(cond, target_codes, source_codes)
     for sample in range(samples):
         noise = torch.stack(
             [
@@ -188,11 +192,7 @@ def _generate(
         with torch.no_grad():
             out += (
                 model.relight(
-                    cond,
-                    codes[lights].to(device),
-                    codes[[source_light] * count].to(device),
-                    num_steps=num_steps,
-                    noise=noise,
+                    cond, target_codes, source_codes, num_steps=num_steps, noise=noise, hint=hint
                 )
                 .float()
                 .cpu()

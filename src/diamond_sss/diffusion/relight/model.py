@@ -304,15 +304,18 @@ class RelightDiffusion(nn.Module):
         num_steps: int = 20,
         generator: torch.Generator | None = None,
         noise: Tensor | None = None,
+        hint: Tensor | None = None,
     ) -> Tensor:
         """DDIM (eta 0) sample of the relit image in model space ``[B,3,R,R]`` (the hint added back with
         ``residual``).
 
-        The initial noise is ``noise`` (shape :meth:`sample_shape`) or drawn from ``generator``.
+        The initial noise is ``noise`` (shape :meth:`sample_shape`) or drawn from ``generator``; ``hint`` is
+        :meth:`hint` of the same inputs (computed here when not given; pass it when sampling several times).
         """
         scheduler = make_ddim_scheduler(self.config.scheduler)
         device = conditioning.device
-        hint = self.hint(conditioning, target_code, source_code)
+        if hint is None:
+            hint = self.hint(conditioning, target_code, source_code)
         sample = ddim_sample(
             lambda x, t: self(x, t, conditioning, target_code, source_code, hint=hint),
             self.sample_shape(conditioning.shape[0]),
