@@ -89,6 +89,10 @@ def test_a_run_with_other_inputs_is_moved_aside_not_deleted(tmp_path):
     (out / "pipeline.json").write_text(record)
     assert move_aside_if_changed(out, {"model": "b"}) == moved.with_name(moved.name + "-2")
     assert move_aside_if_changed(tmp_path / "never_run", {"model": "a"}) is None
+    out.mkdir()
+    (out / "pipeline.json").write_text('{"inputs": ')
+    with pytest.raises(ValueError, match=r"diamond/pipeline.json is not valid JSON"):
+        move_aside_if_changed(out, {"model": "b"})
 
 
 def test_relighting_targets_the_lights_each_view_lacks(setup, tmp_path):

@@ -13,7 +13,7 @@ from diamond_sss.diffusion.common.sampling import SchedulerConfig, make_ddpm_sch
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, image_to_model, model_to_image
 from diamond_sss.diffusion.relight.config import RelightModelConfig
-from diamond_sss.diffusion.relight.hint import direction_from_code, diffused_shading, lambertian_hint
+from diamond_sss.diffusion.relight.hint import diffused_shading, direction_from_code, lambertian_hint
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 

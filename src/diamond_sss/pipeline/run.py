@@ -67,12 +67,25 @@ class StageRecord:
     counts: dict[str, Any] = field(default_factory=dict)
 
 
+def read_manifest(path: Path) -> dict:
+    """The JSON object in ``pipeline.json`` at ``path`` (``{}`` when there is none); a clear error when corrupt."""
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path} is not valid JSON ({error}); move it away or use another --out") from error
+    if isinstance(data, dict):
+        return data
+    raise ValueError(f"{path} must hold a JSON object with 'inputs' and 'stages'; move it away or use another --out")
+
+
 class PipelineManifest:
     """``pipeline.json``: inputs, seeds, model hashes and, per finished stage, its time and counts."""
 
     def __init__(self, path: Path, inputs: dict) -> None:
         self.path = path
-        previous = json.loads(path.read_text()) if path.is_file() else {}
+        previous = read_manifest(path)
         if previous and previous.get("inputs") != inputs:
             raise ValueError(f"{path} belongs to a pipeline run with other inputs; use another --out")
         self.data = {"inputs": inputs, "stages": previous.get("stages", {})}
@@ -89,10 +102,10 @@ def move_aside_if_changed(out: Path, inputs: dict) -> Path | None:
     """Rename a run folder ``out`` whose ``pipeline.json`` records other ``inputs`` (a new model, other data) to
     ``<out>.<first 8 hex of its inputs' hash>`` (``-2``, ``-3``, ... if taken) and return the new path; ``None``
     when there is no previous run or it has the same inputs. Nothing is deleted."""
-    manifest = out / "pipeline.json"
-    if not manifest.is_file():
+    recorded = read_manifest(out / "pipeline.json")
+    if not recorded:
         return None
-    previous = json.loads(manifest.read_text()).get("inputs")
+    previous = recorded.get("inputs")
     if previous == inputs:
         return None
     stem = f"{out.name}.{sha256_json(previous)[:8]}"
