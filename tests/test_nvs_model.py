@@ -239,6 +239,12 @@ def test_save_load_round_trip(tmp_path):
     loaded = NVSModel.load(tmp_path)
     for (k, a), (_, b) in zip(model.state_dict().items(), loaded.state_dict().items()):
         assert torch.equal(a, b), k
+    # fp16 storage (the shipped weights): loaded back as fp32, equal to the fp16-rounded weights.
+    model.save(tmp_path / "half", half=True)
+    halved = NVSModel.load(tmp_path / "half")
+    for (k, a), (_, b) in zip(model.state_dict().items(), halved.state_dict().items()):
+        assert b.dtype == a.dtype, k
+        assert torch.equal(b, a.half().float() if a.is_floating_point() else a), k
 
 
 def test_bad_inputs_give_clear_errors(tmp_path):

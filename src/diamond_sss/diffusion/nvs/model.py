@@ -451,11 +451,14 @@ class NVSModel(nn.Module):
         return rgba.reshape(b, v, *rgba.shape[1:])
 
     # -------------------------------------------------------------- save/load
-    def save(self, folder: str | Path) -> Path:
-        """Write ``config.json`` and ``model.safetensors`` (without the VAE) atomically into ``folder``."""
+    def save(self, folder: str | Path, half: bool = False) -> Path:
+        """Write ``config.json`` and ``model.safetensors`` (without the VAE; floats in fp16 with ``half``)
+        atomically into ``folder``."""
         folder = Path(folder)
         tensors = {
-            k: v.detach().cpu().contiguous() for k, v in self.state_dict().items() if not k.startswith("vae.")
+            k: (v.half() if half and v.is_floating_point() else v).detach().cpu().contiguous()
+            for k, v in self.state_dict().items()
+            if not k.startswith("vae.")
         }
         atomic_save_safetensors(folder / WEIGHTS_NAME, tensors)
         atomic_write_json(folder / CONFIG_NAME, asdict(self.config))
@@ -470,7 +473,7 @@ class NVSModel(nn.Module):
                 raise FileNotFoundError(f"NVS model folder {folder} has no {name}")
         config = NVSConfig.from_dict(json.loads((folder / CONFIG_NAME).read_text()))
         model = cls(config, vae=vae)
-        state = load_safetensors(folder / WEIGHTS_NAME)
+        state = {k: v.float() if v.is_floating_point() else v for k, v in load_safetensors(folder / WEIGHTS_NAME).items()}
         missing, unexpected = model.load_state_dict(state, strict=False)
         missing = [k for k in missing if not k.startswith("vae.")]
         if missing or unexpected:
