@@ -36,7 +36,7 @@ from diamond_sss.diffusion.geometry import StoredMapsGeometry
 from diamond_sss.diffusion.relight.baselines import lambertian_relight
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, model_to_image
 from diamond_sss.diffusion.relight.config import RelightModelConfig
-from diamond_sss.diffusion.relight.hint import lambertian_hint
+from diamond_sss.diffusion.relight.hint import configured_hint
 from diamond_sss.diffusion.relight.inference import load_model, relight_view
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.evaluation.figures import save_image_grid, to_display
@@ -52,11 +52,7 @@ def shading_hint(model, conditioning: Tensor, target_codes: Tensor, source_code:
     source_codes = source_code.expand_as(target_codes)
     hint = model.hint(conditioning, target_codes, source_codes)
     if hint is None:
-        default = RelightModelConfig()
-        sigmas = tuple(blur * conditioning.shape[-1] for blur in default.hint_blurs)
-        hint = lambertian_hint(
-            conditioning, target_codes, source_codes, blur_sigmas=sigmas, wraps=default.hint_wraps
-        )
+        hint = configured_hint(RelightModelConfig(), conditioning, target_codes, source_codes)
     return hint
 
 

@@ -29,6 +29,7 @@ from torch import Tensor
 
 from diamond_sss.data.conventions import linear_to_srgb, srgb_to_linear
 from diamond_sss.diffusion.relight.conditioning import MASK_THRESHOLD
+from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.shading.sh import SH_C1
 
 
@@ -96,3 +97,11 @@ def lambertian_hint(
             best_relit = torch.where(better[:, None, None, None], relit, best_relit)
             best_error = torch.where(better, error, best_error)
     return linear_to_srgb(best_relit) * 2.0 - 1.0
+
+
+def configured_hint(
+    config: RelightModelConfig, conditioning: Tensor, target_code: Tensor, source_code: Tensor
+) -> Tensor:
+    """:func:`lambertian_hint` with the grids of ``config`` (blurs given as fractions of the resolution)."""
+    sigmas = tuple(blur * conditioning.shape[-1] for blur in config.hint_blurs)
+    return lambertian_hint(conditioning, target_code, source_code, blur_sigmas=sigmas, wraps=config.hint_wraps)

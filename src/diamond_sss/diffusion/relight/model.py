@@ -21,7 +21,7 @@ from torch import Tensor, nn
 from diamond_sss.diffusion.common.hashing import state_dict_hash
 from diamond_sss.diffusion.common.sampling import ddim_sample, make_ddim_scheduler, make_ddpm_scheduler
 from diamond_sss.diffusion.relight.config import CONDITIONING_CHANNELS, RelightModelConfig
-from diamond_sss.diffusion.relight.hint import lambertian_hint
+from diamond_sss.diffusion.relight.hint import configured_hint
 from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
 
 WEIGHTS_NAME = "model.safetensors"
@@ -243,10 +243,7 @@ class RelightDiffusion(nn.Module):
             raise ValueError(
                 "the shading hint needs the source light's code, shaped like target_code [B, 10]"
             )
-        sigmas = tuple(blur * conditioning.shape[-1] for blur in self.config.hint_blurs)
-        return lambertian_hint(
-            conditioning, target_code, source_code, blur_sigmas=sigmas, wraps=self.config.hint_wraps
-        )
+        return configured_hint(self.config, conditioning, target_code, source_code)
 
     def offset(self, hint: Tensor | None) -> Tensor | None:
         """``E(hint)``, what the denoised variable is measured from with ``residual``; ``None`` without."""
