@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from tiny_models import TINY_NVS
+from tiny_models import TINY_NVS, tiny_vae
 
 from diamond_sss.data.conventions import (
     intrinsics_from_fov,
@@ -199,19 +199,8 @@ def test_sampling_is_deterministic_and_shared_noise_gives_identical_views_for_id
 
 
 def test_latent_space_round_trip_uses_the_vae_scale():
-    from diffusers import AutoencoderKL
-
     torch.manual_seed(0)
-    vae = AutoencoderKL(
-        in_channels=3,
-        out_channels=3,
-        latent_channels=4,
-        block_out_channels=(8, 8, 8, 8),
-        down_block_types=("DownEncoderBlock2D",) * 4,
-        up_block_types=("UpDecoderBlock2D",) * 4,
-        norm_num_groups=4,
-        sample_size=32,
-    )
+    vae = tiny_vae(levels=4)
     model = NVSModel(NVSConfig(**{**TINY, "space": "latent", "image_size": 32}), vae=vae).eval()
     rgba = torch.rand(2, 4, 32, 32)
     with torch.no_grad():
