@@ -11,6 +11,7 @@ from diamond_sss.diffusion.relight.augment import (
     augment_batch,
     mirror_batch,
     mirror_code,
+    permute_colors,
     scale_radiance,
 )
 from diamond_sss.diffusion.relight.conditioning import model_to_image
@@ -66,13 +67,27 @@ def test_gains_scale_source_target_and_hint_alike(batch):
     assert torch.allclose(hint_scaled[unclamped], expected[unclamped], atol=1e-4)
 
 
+def test_colour_permutation_permutes_source_target_and_hint_alike(batch):
+    orders = torch.tensor([[2, 0, 1], [0, 1, 2], [1, 0, 2], [2, 1, 0]])
+    permuted = permute_colors(batch, orders)
+    for key in ("source", "target"):
+        for b in range(4):
+            assert torch.equal(permuted[key][b], batch[key][b, orders[b]])
+    assert torch.equal(permuted["conditioning"][:, 3:], batch["conditioning"][:, 3:])
+    hint = lambertian_hint(batch["conditioning"], batch["target_code"], batch["source_code"])
+    hint_permuted = lambertian_hint(permuted["conditioning"], permuted["target_code"], permuted["source_code"])
+    for b in range(4):
+        assert torch.allclose(hint_permuted[b], hint[b, orders[b]], atol=1e-5)
+    assert not torch.allclose(hint_permuted[0], hint[0], atol=1e-3)
+
+
 def test_augmentation_is_seeded_and_can_be_switched_off(batch):
     config = RelightAugmentConfig()
     first = augment_batch(batch, config, torch.Generator().manual_seed(3))
     again = augment_batch(batch, config, torch.Generator().manual_seed(3))
     assert all(torch.equal(first[k], again[k]) for k in batch)
     assert not torch.equal(first["target"], batch["target"])
-    off = augment_batch(batch, RelightAugmentConfig(mirror=False, exposure=0.0, tint=0.0), torch.Generator())
+    off = augment_batch(batch, RelightAugmentConfig.off(), torch.Generator())
     assert all(torch.allclose(off[k], batch[k], atol=1e-5) for k in batch)
     with pytest.raises(ValueError, match="exposure and tint"):
         RelightAugmentConfig(exposure=-1.0)

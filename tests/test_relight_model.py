@@ -254,8 +254,10 @@ def test_config_reads_models_saved_with_one_hint_blur():
     config = RelightModelConfig.from_dict(legacy)
     assert config.hint_blurs == (0.03125,) and config.hint_wraps == (0.0,)
     assert RelightModelConfig.from_dict(config.to_dict()) == config
-    with pytest.raises(ValueError, match="hint_blurs and hint_wraps"):
+    with pytest.raises(ValueError, match="hint_wraps must be a non-empty list of numbers"):
         RelightModelConfig(hint_wraps=())
+    with pytest.raises(ValueError, match=r"hint_blurs must be a non-empty list of numbers, got \('0.1',\)"):
+        RelightModelConfig.from_dict({**config.to_dict(), "hint_blurs": ["0.1"]})
 
 
 def test_residual_model_adds_the_hint_back():

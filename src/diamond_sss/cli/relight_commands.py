@@ -44,7 +44,8 @@ def finetune_relight(
         resolution: model resolution in pixels (pixel-space default model: 64).
         use_source_light: also condition on the source light's code.
         shading_hint: give the ControlNet the Lambertian shading hint and denoise the residual from it.
-        augment: mirror the pairs and vary their exposure and tint (exact symmetries of light transport).
+        augment: mirror the pairs, vary their exposure and tint, permute their colours (exact symmetries of light
+            transport).
         lpips_weights: LPIPS (VGG) weights in safetensors; the LPIPS term is skipped without them.
         mixed_precision: no | fp16 | bf16 (GPU only).
         time_limit_s: stop after this much wall time (checkpoint and weights are written).
@@ -84,7 +85,7 @@ def finetune_relight(
         mixed_precision=mixed_precision,
         time_limit_s=time_limit_s,
         checkpoint_every=checkpoint_every,
-        augment=RelightAugmentConfig() if augment else RelightAugmentConfig(mirror=False, exposure=0.0, tint=0.0),
+        augment=RelightAugmentConfig() if augment else RelightAugmentConfig.off(),
     )
     console = Console()
     lpips = load_lpips(lpips_weights)

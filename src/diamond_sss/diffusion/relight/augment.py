@@ -7,6 +7,10 @@
   linear radiance by the same gain ``k_c = 2^(e u) exp(t v_c)`` (``u, v_c ~ U(-1, 1)``) keeps a valid pair
   (clamped to [0, 1] like a camera's range). It shows the model objects of other brightness and colour than
   the four fine-tuning objects.
+- colour permutation: with white lights, the red, green and blue images are three independent renderings (one per
+  channel's albedo and scattering coefficients), so permuting the channels of source and target together gives
+  the exact pair of an object whose material has its coefficients permuted (a green "skin", a red "jade"). It
+  breaks the tie between shape and material colour in four fine-tuning objects (each shape has one material).
 """
 
 from __future__ import annotations
@@ -36,15 +40,22 @@ class RelightAugmentConfig:
         mirror: mirror half of the pairs left-right.
         exposure: log2 range ``e`` of the shared gain (1 = from 1/2 to 2 times; 0 = off).
         tint: natural-log range ``t`` of the per-channel gains (0.15 = about +-16%; 0 = off).
+        permute_colors: permute the colour channels of each pair by one of the 6 permutations, uniformly.
     """
 
     mirror: bool = True
     exposure: float = 1.0
     tint: float = 0.15
+    permute_colors: bool = True
 
     def __post_init__(self) -> None:
         if self.exposure < 0.0 or self.tint < 0.0:
             raise ValueError(f"exposure and tint must be >= 0, got {self.exposure} and {self.tint}")
+
+    @classmethod
+    def off(cls) -> RelightAugmentConfig:
+        """No augmentation: every pair as rendered."""
+        return cls(mirror=False, exposure=0.0, tint=0.0, permute_colors=False)
 
 
 def mirror_code(code: Tensor) -> Tensor:
@@ -85,18 +96,41 @@ def scale_radiance(batch: dict[str, Tensor], gains: Tensor) -> dict[str, Tensor]
     return out
 
 
+COLOR_PERMUTATIONS = torch.tensor([[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]])
+"""The 6 orders of the channels (R, G, B); row 0 is the identity."""
+
+
+def permute_colors(batch: dict[str, Tensor], orders: Tensor) -> dict[str, Tensor]:
+    """``batch`` with the source and target channels of pair ``b`` taken in the order ``orders[b] [3]`` (long)."""
+
+    def permuted(model_space: Tensor) -> Tensor:
+        index = orders.to(model_space.device)[:, :, None, None].expand(-1, -1, *model_space.shape[-2:])
+        return model_space.gather(1, index)
+
+    out = dict(batch)
+    out["source"] = permuted(batch["source"])
+    out["target"] = permuted(batch["target"])
+    conditioning = batch["conditioning"].clone()
+    conditioning[:, SOURCE_CHANNELS] = permuted(batch["conditioning"][:, SOURCE_CHANNELS])
+    out["conditioning"] = conditioning
+    return out
+
+
 def augment_batch(
     batch: dict[str, Tensor], config: RelightAugmentConfig, generator: torch.Generator
 ) -> dict[str, Tensor]:
-    """Randomly mirrored and re-exposed ``batch``; the draws come from ``generator`` (CPU)."""
+    """Randomly mirrored, re-exposed and colour-permuted ``batch``; the draws come from ``generator`` (CPU)."""
     count = batch["target"].shape[0]
     device = batch["target"].device
     chosen = torch.rand(count, generator=generator) < 0.5
     exposure = torch.rand(count, 1, generator=generator) * 2.0 - 1.0
     tint = torch.rand(count, 3, generator=generator) * 2.0 - 1.0
+    orders = COLOR_PERMUTATIONS[torch.randint(len(COLOR_PERMUTATIONS), (count,), generator=generator)]
     if config.mirror:
         batch = mirror_batch(batch, chosen.to(device))
     if config.exposure > 0.0 or config.tint > 0.0:
         gains = torch.exp2(config.exposure * exposure) * torch.exp(config.tint * tint)
         batch = scale_radiance(batch, gains.to(device=device, dtype=batch["target"].dtype))
+    if config.permute_colors:
+        batch = permute_colors(batch, orders)
     return batch

@@ -80,8 +80,10 @@ class RelightModelConfig:
             raise ValueError(
                 "residual=True denoises the offset from the shading hint: it needs shading_hint=True"
             )
-        if not self.hint_blurs or not self.hint_wraps:
-            raise ValueError("hint_blurs and hint_wraps need at least one value each")
+        for key in ("hint_blurs", "hint_wraps"):
+            values = getattr(self, key)
+            if not values or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+                raise ValueError(f"{key} must be a non-empty list of numbers, got {values!r}")
         if min(self.hint_blurs) < 0.0 or min(self.hint_wraps) < 0.0:
             raise ValueError(
                 f"hint_blurs and hint_wraps must be >= 0, got {self.hint_blurs} and {self.hint_wraps}"

@@ -42,7 +42,7 @@ class RelightTrainConfig:
         mixed_precision: accelerate's ``"no"``, ``"fp16"`` or ``"bf16"`` (GPU).
         time_limit_s: stop early (checkpoint and weights written) once this much wall time has passed.
         losses: loss weights.
-        augment: mirror / exposure / tint augmentation of the pairs (``augment.py``).
+        augment: mirror / exposure / tint / colour-permutation augmentation of the pairs (``augment.py``).
     """
 
     steps: int = 2000
