@@ -13,7 +13,12 @@ from diamond_sss.diffusion.common.sampling import SchedulerConfig, make_ddpm_sch
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, image_to_model, model_to_image
 from diamond_sss.diffusion.relight.config import RelightModelConfig
-from diamond_sss.diffusion.relight.hint import diffused_shading, direction_from_code, lambertian_hint
+from diamond_sss.diffusion.relight.hint import (
+    diffused_shading,
+    direction_from_code,
+    fit_scattering,
+    lambertian_hint,
+)
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 
@@ -245,6 +250,26 @@ def test_hint_fits_the_scattering_of_the_source():
     assert torch.allclose(fitted, truth, atol=1e-4)
     lambertian = model_to_image(lambertian_hint(cond, target_code, source_code)).permute(0, 3, 1, 2)
     assert float((lambertian - truth).abs().max()) > 0.05
+    fit = fit_scattering(cond, source_code, blur_sigmas=(0.0, 1.0, 2.0, 4.0), wraps=(0.0, 0.5, 1.0))
+    assert (float(fit.wrap), float(fit.sigma)) == (0.5, 2.0)
+    assert torch.allclose(fit.albedo.flatten(), albedo.flatten(), atol=1e-4)
+
+
+def test_one_fit_per_source_gives_the_hint_of_each_pair():
+    model = tiny_model().eval()
+    generator = torch.Generator().manual_seed(4)
+    single = torch.rand(1, 8, 16, 16, generator=generator) * 2.0 - 1.0
+    positions = torch.randn(5, 3, generator=generator) * 3.0
+    codes = light_code(positions, torch.eye(4).expand(5, 4, 4), torch.zeros(3), 1.0)
+    source_code = codes[:1].expand(4, -1)
+    cond = single.expand(4, -1, -1, -1)
+    fitted_once = model.hint(cond, codes[1:], source_code, fit=model.scattering_fit(single, codes[:1]).expand(4))
+    assert torch.allclose(fitted_once, model.hint(cond, codes[1:], source_code), atol=1e-6)
+    mixed = torch.cat([single, torch.rand(1, 8, 16, 16, generator=generator) * 2.0 - 1.0])
+    fit = model.scattering_fit(mixed, codes[:2])
+    assert torch.allclose(
+        model.hint(mixed, codes[2:4], codes[:2], fit=fit), model.hint(mixed, codes[2:4], codes[:2]), atol=1e-6
+    )
 
 
 def test_config_reads_models_saved_with_one_hint_blur():

@@ -22,6 +22,7 @@ conditioning image and the light codes, so every caller gets the same hint:
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -55,9 +56,7 @@ def gaussian_blur(image: Tensor, sigma: float) -> Tensor:
     return F.conv2d(F.pad(image, (0, 0, radius, radius), mode="replicate"), vertical, groups=channels)
 
 
-def diffused_shading(
-    normals: Tensor, keep: Tensor, code: Tensor, wrap: float, blur_sigma: float
-) -> Tensor:
+def diffused_shading(normals: Tensor, keep: Tensor, code: Tensor, wrap: float, blur_sigma: float) -> Tensor:
     """Wrapped, screen-space diffused shading ``s [B,1,H,W]`` (module doc) of camera-space ``normals [B,3,H,W]``
     inside ``keep [B,1,H,W]`` for light codes ``[B,10]``."""
     direction, distance = direction_from_code(code)
@@ -67,6 +66,80 @@ def diffused_shading(
     return diffused / distance.square().clamp_min(1e-8)[..., None, None]
 
 
+@dataclass(frozen=True)
+class ScatteringFit:
+    """What the hint takes from the source image: per-channel albedo ``[B,3,1,1]`` and the chosen wrap ``[B]``
+    and diffusion ``sigma [B]`` (pixels; float64, exactly the grid's values). It depends on the source only, so it
+    is fitted once per source."""
+
+    albedo: Tensor
+    wrap: Tensor
+    sigma: Tensor
+
+    def expand(self, count: int) -> ScatteringFit:
+        """The fit of one source ``[1,...]`` repeated for ``count`` target lights."""
+        return ScatteringFit(
+            self.albedo.expand(count, -1, -1, -1), self.wrap.expand(count), self.sigma.expand(count)
+        )
+
+
+def hint_inputs(conditioning: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Linear source ``[B,3,R,R]``, unit camera-space normals ``[B,3,R,R]`` and mask ``[B,1,R,R]`` (0 / 1) of a
+    conditioning image ``[B,8,R,R]``."""
+    source = srgb_to_linear(((conditioning[:, 0:3] + 1.0) * 0.5).clamp(0.0, 1.0))
+    normals = F.normalize(conditioning[:, 4:7], dim=1, eps=1e-8)
+    keep = ((conditioning[:, 7:8] + 1.0) * 0.5 > MASK_THRESHOLD).to(source.dtype)
+    return source, normals, keep
+
+
+def fit_scattering(
+    conditioning: Tensor,
+    source_code: Tensor,
+    blur_sigmas: tuple[float, ...] = (0.0,),
+    wraps: tuple[float, ...] = (0.0,),
+) -> ScatteringFit:
+    """Albedo and the pair of ``wraps`` x ``blur_sigmas`` (pixels) that best explains each source image of
+    ``conditioning [B,8,R,R]`` lit by ``source_code [B,10]`` (squared sRGB error over the mask; module doc)."""
+    source, normals, keep = hint_inputs(conditioning)
+    source_srgb = linear_to_srgb(source)
+    count = source.shape[0]
+    best_error = torch.full((count,), math.inf, dtype=source.dtype, device=source.device)
+    grid_value = {"dtype": torch.float64, "device": source.device}
+    best = ScatteringFit(
+        torch.zeros_like(source[:, :, :1, :1]),
+        torch.zeros(count, **grid_value),
+        torch.zeros(count, **grid_value),
+    )
+    for wrap in wraps:
+        for sigma in blur_sigmas:
+            shading = diffused_shading(normals, keep, source_code, wrap, sigma)
+            albedo = (source * shading).sum((2, 3), keepdim=True) / shading.square().sum(
+                (2, 3), keepdim=True
+            ).clamp_min(1e-8)
+            explained = linear_to_srgb((albedo * shading).clamp(0.0, 1.0))
+            error = ((explained - source_srgb).square() * keep).sum((1, 2, 3))
+            better = error < best_error
+            best = ScatteringFit(
+                torch.where(better[:, None, None, None], albedo, best.albedo),
+                torch.where(better, torch.full_like(best.wrap, wrap), best.wrap),
+                torch.where(better, torch.full_like(best.sigma, sigma), best.sigma),
+            )
+            best_error = torch.where(better, error, best_error)
+    return best
+
+
+def relit_hint(conditioning: Tensor, target_code: Tensor, fit: ScatteringFit) -> Tensor:
+    """Hint ``a_c s_tgt`` ``[B,3,R,R]`` (model space) for ``target_code [B,10]`` with the fitted scattering."""
+    _, normals, keep = hint_inputs(conditioning)
+    relit = torch.zeros_like(normals)
+    pairs = torch.stack([fit.wrap, fit.sigma], dim=-1)
+    for wrap, sigma in torch.unique(pairs.detach(), dim=0).tolist():
+        chosen = (pairs[:, 0] == wrap) & (pairs[:, 1] == sigma)
+        shading = diffused_shading(normals[chosen], keep[chosen], target_code[chosen], wrap, sigma)
+        relit = relit.index_put((chosen,), (fit.albedo[chosen] * shading).clamp(0.0, 1.0))
+    return linear_to_srgb(relit) * 2.0 - 1.0
+
+
 def lambertian_hint(
     conditioning: Tensor,
     target_code: Tensor,
@@ -74,34 +147,21 @@ def lambertian_hint(
     blur_sigmas: tuple[float, ...] = (0.0,),
     wraps: tuple[float, ...] = (0.0,),
 ) -> Tensor:
-    """Hint ``[B,3,R,R]`` (model space) for ``conditioning [B,8,R,R]`` and light codes ``[B,10]``; the scattering
-    of each image is the pair of ``wraps`` x ``blur_sigmas`` (pixels) that best explains its source image."""
-    source = srgb_to_linear(((conditioning[:, 0:3] + 1.0) * 0.5).clamp(0.0, 1.0))
-    source_srgb = linear_to_srgb(source)
-    normals = F.normalize(conditioning[:, 4:7], dim=1, eps=1e-8)
-    keep = ((conditioning[:, 7:8] + 1.0) * 0.5 > MASK_THRESHOLD).to(source.dtype)
-    best_error = torch.full((source.shape[0],), math.inf, dtype=source.dtype, device=source.device)
-    best_relit = torch.zeros_like(source)
-    for wrap in wraps:
-        for sigma in blur_sigmas:
-            shading_source = diffused_shading(normals, keep, source_code, wrap, sigma)
-            albedo = (source * shading_source).sum((2, 3), keepdim=True) / shading_source.square().sum(
-                (2, 3), keepdim=True
-            ).clamp_min(1e-8)
-            explained = linear_to_srgb((albedo * shading_source).clamp(0.0, 1.0))
-            error = ((explained - source_srgb).square() * keep).sum((1, 2, 3))
-            better = error < best_error
-            if not bool(better.any()):
-                continue
-            relit = (albedo * diffused_shading(normals, keep, target_code, wrap, sigma)).clamp(0.0, 1.0)
-            best_relit = torch.where(better[:, None, None, None], relit, best_relit)
-            best_error = torch.where(better, error, best_error)
-    return linear_to_srgb(best_relit) * 2.0 - 1.0
+    """Hint ``[B,3,R,R]`` (model space) for ``conditioning [B,8,R,R]`` and light codes ``[B,10]``: the
+    scattering of each image fitted to its source (:func:`fit_scattering`), then relit (:func:`relit_hint`)."""
+    return relit_hint(
+        conditioning, target_code, fit_scattering(conditioning, source_code, blur_sigmas, wraps)
+    )
+
+
+def configured_fit(config: RelightModelConfig, conditioning: Tensor, source_code: Tensor) -> ScatteringFit:
+    """:func:`fit_scattering` with the grids of ``config`` (blurs given as fractions of the resolution)."""
+    sigmas = tuple(blur * conditioning.shape[-1] for blur in config.hint_blurs)
+    return fit_scattering(conditioning, source_code, blur_sigmas=sigmas, wraps=config.hint_wraps)
 
 
 def configured_hint(
     config: RelightModelConfig, conditioning: Tensor, target_code: Tensor, source_code: Tensor
 ) -> Tensor:
-    """:func:`lambertian_hint` with the grids of ``config`` (blurs given as fractions of the resolution)."""
-    sigmas = tuple(blur * conditioning.shape[-1] for blur in config.hint_blurs)
-    return lambertian_hint(conditioning, target_code, source_code, blur_sigmas=sigmas, wraps=config.hint_wraps)
+    """:func:`lambertian_hint` with the grids of ``config``."""
+    return relit_hint(conditioning, target_code, configured_fit(config, conditioning, source_code))

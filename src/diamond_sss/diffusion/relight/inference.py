@@ -178,7 +178,8 @@ def _generate(
     target_codes = codes[lights].to(device)
     source_codes = codes[[source_light] * count].to(device)
     with torch.no_grad():
-        hint = model.hint(cond, target_codes, source_codes)
+        fit = model.scattering_fit(single.to(device), source_codes[:1])
+        hint = model.hint(cond, target_codes, source_codes, fit=None if fit is None else fit.expand(count))
     for sample in range(samples):
         noise = torch.stack(
             [

@@ -21,7 +21,7 @@ from torch import Tensor, nn
 from diamond_sss.diffusion.common.hashing import state_dict_hash
 from diamond_sss.diffusion.common.sampling import ddim_sample, make_ddim_scheduler, make_ddpm_scheduler
 from diamond_sss.diffusion.relight.config import CONDITIONING_CHANNELS, RelightModelConfig
-from diamond_sss.diffusion.relight.hint import configured_hint
+from diamond_sss.diffusion.relight.hint import ScatteringFit, configured_fit, relit_hint
 from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
 
 WEIGHTS_NAME = "model.safetensors"
@@ -234,16 +234,32 @@ class RelightDiffusion(nn.Module):
             raise ValueError("this model also needs the source light's code, shaped like target_code")
         return torch.cat([target_code, source_code], dim=-1)
 
-    def hint(self, conditioning: Tensor, target_code: Tensor, source_code: Tensor | None) -> Tensor | None:
-        """The shading hint ``[B,3,R,R]`` in model space (``hint.py``; it needs the source light's code), or
-        ``None`` for a model without one. Compute it once per conditioning and pass it to :meth:`forward`."""
+    def scattering_fit(self, conditioning: Tensor, source_code: Tensor) -> ScatteringFit | None:
+        """The hint's fit to the source images (``hint.py``), or ``None`` for a model without a hint; pass it
+        to :meth:`hint` (``fit.expand(n)`` for one source and ``n`` target lights) to fit each source once."""
         if not self.config.shading_hint:
             return None
-        if source_code is None or source_code.shape != target_code.shape:
-            raise ValueError(
-                "the shading hint needs the source light's code, shaped like target_code [B, 10]"
-            )
-        return configured_hint(self.config, conditioning, target_code, source_code)
+        return configured_fit(self.config, conditioning, source_code)
+
+    def hint(
+        self,
+        conditioning: Tensor,
+        target_code: Tensor,
+        source_code: Tensor | None,
+        fit: ScatteringFit | None = None,
+    ) -> Tensor | None:
+        """The shading hint ``[B,3,R,R]`` in model space (``hint.py``; it needs the source light's code, or
+        its :meth:`scattering_fit`), or ``None`` for a model without one. Compute it once per conditioning and
+        pass it to :meth:`forward`."""
+        if not self.config.shading_hint:
+            return None
+        if fit is None:
+            if source_code is None or source_code.shape != target_code.shape:
+                raise ValueError(
+                    "the shading hint needs the source light's code, shaped like target_code [B, 10]"
+                )
+            fit = configured_fit(self.config, conditioning, source_code)
+        return relit_hint(conditioning, target_code, fit)
 
     def offset(self, hint: Tensor | None) -> Tensor | None:
         """``E(hint)``, what the denoised variable is measured from with ``residual``; ``None`` without."""
