@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -81,19 +82,21 @@ def mirror_batch(batch: dict[str, Tensor], chosen: Tensor) -> dict[str, Tensor]:
     return out
 
 
-def scale_radiance(batch: dict[str, Tensor], gains: Tensor) -> dict[str, Tensor]:
-    """``batch`` with the source and target linear radiance multiplied by ``gains [B,3]`` (clamped to [0, 1])."""
-
-    def scaled(model_space: Tensor) -> Tensor:
-        return image_to_model(model_to_image(model_space) * gains[:, None, None, :])
-
+def map_images(batch: dict[str, Tensor], transform: Callable[[Tensor], Tensor]) -> dict[str, Tensor]:
+    """``batch`` with ``transform`` applied to its source and target images (model space ``[B,3,R,R]``), the
+    conditioning's copy of the source included."""
     out = dict(batch)
-    out["source"] = scaled(batch["source"])
-    out["target"] = scaled(batch["target"])
+    out["source"] = transform(batch["source"])
+    out["target"] = transform(batch["target"])
     conditioning = batch["conditioning"].clone()
-    conditioning[:, SOURCE_CHANNELS] = scaled(batch["conditioning"][:, SOURCE_CHANNELS])
+    conditioning[:, SOURCE_CHANNELS] = transform(batch["conditioning"][:, SOURCE_CHANNELS])
     out["conditioning"] = conditioning
     return out
+
+
+def scale_radiance(batch: dict[str, Tensor], gains: Tensor) -> dict[str, Tensor]:
+    """``batch`` with the source and target linear radiance multiplied by ``gains [B,3]`` (clamped to [0, 1])."""
+    return map_images(batch, lambda x: image_to_model(model_to_image(x) * gains[:, None, None, :]))
 
 
 COLOR_PERMUTATIONS = torch.tensor([[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]])
@@ -107,13 +110,7 @@ def permute_colors(batch: dict[str, Tensor], orders: Tensor) -> dict[str, Tensor
         index = orders.to(model_space.device)[:, :, None, None].expand(-1, -1, *model_space.shape[-2:])
         return model_space.gather(1, index)
 
-    out = dict(batch)
-    out["source"] = permuted(batch["source"])
-    out["target"] = permuted(batch["target"])
-    conditioning = batch["conditioning"].clone()
-    conditioning[:, SOURCE_CHANNELS] = permuted(batch["conditioning"][:, SOURCE_CHANNELS])
-    out["conditioning"] = conditioning
-    return out
+    return map_images(batch, permuted)
 
 
 def augment_batch(
