@@ -8,6 +8,7 @@ import pytest
 import torch
 from test_relight_model import tiny_model
 
+from diamond_sss.cli.main import main
 from diamond_sss.cli.relight_commands import relight
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.embedded import embedded_dataset
@@ -123,6 +124,18 @@ def test_clear_errors(setup, tmp_path):
         )
     with pytest.raises(ValueError, match="comma-separated"):
         relight(dataset.root, view, lights[0], "a,b", "maps", tmp_path / "out", model=root / "model")
+
+
+def test_command_line_reports_an_unusable_geometry_source(setup, tmp_path, capsys):
+    root, _, dataset, view, lights = setup
+    args = ["relight", "--data", str(dataset.root), "--view", str(view), "--source-light", str(lights[0]),
+            "--target-lights", "1", "--geometry", str(tmp_path / "no_run"), "--out", str(tmp_path / "out"),
+            "--model", str(root / "model")]
+    with pytest.raises(SystemExit) as exit_info:
+        main(args)
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert error.startswith("diamond-sss: error:") and "not usable" in error and "Traceback" not in error
 
 
 def test_ensemble_averages_out_the_sampling_noise(setup, tmp_path):

@@ -15,7 +15,6 @@ from diamond_sss.cli.relight_commands import finetune_relight, relight
 from diamond_sss.cli.train_commands import ablate, evaluate, export, render, train, view
 from diamond_sss.cli.tune_commands import tune
 from diamond_sss.data.errors import DataError
-from diamond_sss.diffusion.geometry.base import GeometryError
 
 
 def commands() -> dict[str, Callable[..., None]]:
@@ -31,7 +30,7 @@ def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``diamond-sss`` console script."""
     try:
         tyro.extras.subcommand_cli_from_dict(commands(), args=argv, prog="diamond-sss")
-    except (DataError, FileNotFoundError, ValueError, FloatingPointError, GeometryError) as exc:
+    except (DataError, FileNotFoundError, ValueError, FloatingPointError) as exc:
         print(f"diamond-sss: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from exc
 

@@ -10,10 +10,11 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diamond_sss.data.dataset import OLATDataset
+from diamond_sss.data.errors import DataError
 
 
-class GeometryError(RuntimeError):
-    """No usable geometry for a view (missing maps, run folder or model path)."""
+class GeometryError(DataError):
+    """No usable geometry for a view (missing maps, run folder or model path): bad input, a :class:`DataError`."""
 
 
 @dataclass
