@@ -270,6 +270,11 @@ def test_one_fit_per_source_gives_the_hint_of_each_pair():
     assert torch.allclose(
         model.hint(mixed, codes[2:4], codes[:2], fit=fit), model.hint(mixed, codes[2:4], codes[:2]), atol=1e-6
     )
+    with pytest.raises(ValueError, match="one entry per image, got 4, 4 and 1"):
+        model.hint(cond, codes[1:], source_code, fit=model.scattering_fit(single, codes[:1]))
+    empty = single.clone()
+    empty[:, 7] = -1.0
+    assert torch.equal(model.hint(empty, codes[1:2], codes[:1]), torch.full((1, 3, 16, 16), -1.0))
 
 
 def test_config_reads_models_saved_with_one_hint_blur():

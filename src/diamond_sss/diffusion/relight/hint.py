@@ -28,8 +28,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from diamond_sss.data.conventions import linear_to_srgb, srgb_to_linear
-from diamond_sss.diffusion.relight.conditioning import MASK_THRESHOLD
+from diamond_sss.data.conventions import linear_to_srgb
+from diamond_sss.diffusion.relight.conditioning import MASK_THRESHOLD, model_to_image
 from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.shading.sh import SH_C1
 
@@ -83,13 +83,12 @@ class ScatteringFit:
         )
 
 
-def hint_inputs(conditioning: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Linear source ``[B,3,R,R]``, unit camera-space normals ``[B,3,R,R]`` and mask ``[B,1,R,R]`` (0 / 1) of a
-    conditioning image ``[B,8,R,R]``."""
-    source = srgb_to_linear(((conditioning[:, 0:3] + 1.0) * 0.5).clamp(0.0, 1.0))
+def hint_surface(conditioning: Tensor) -> tuple[Tensor, Tensor]:
+    """Unit camera-space normals ``[B,3,R,R]`` and mask ``[B,1,R,R]`` (0 / 1) of a conditioning image
+    ``[B,8,R,R]``."""
     normals = F.normalize(conditioning[:, 4:7], dim=1, eps=1e-8)
-    keep = ((conditioning[:, 7:8] + 1.0) * 0.5 > MASK_THRESHOLD).to(source.dtype)
-    return source, normals, keep
+    keep = ((conditioning[:, 7:8] + 1.0) * 0.5 > MASK_THRESHOLD).to(conditioning.dtype)
+    return normals, keep
 
 
 def fit_scattering(
@@ -100,8 +99,9 @@ def fit_scattering(
 ) -> ScatteringFit:
     """Albedo and the pair of ``wraps`` x ``blur_sigmas`` (pixels) that best explains each source image of
     ``conditioning [B,8,R,R]`` lit by ``source_code [B,10]`` (squared sRGB error over the mask; module doc)."""
-    source, normals, keep = hint_inputs(conditioning)
+    source = model_to_image(conditioning[:, 0:3]).permute(0, 3, 1, 2)
     source_srgb = linear_to_srgb(source)
+    normals, keep = hint_surface(conditioning)
     count = source.shape[0]
     best_error = torch.full((count,), math.inf, dtype=source.dtype, device=source.device)
     grid_value = {"dtype": torch.float64, "device": source.device}
@@ -130,7 +130,12 @@ def fit_scattering(
 
 def relit_hint(conditioning: Tensor, target_code: Tensor, fit: ScatteringFit) -> Tensor:
     """Hint ``a_c s_tgt`` ``[B,3,R,R]`` (model space) for ``target_code [B,10]`` with the fitted scattering."""
-    _, normals, keep = hint_inputs(conditioning)
+    if fit.albedo.shape[0] != conditioning.shape[0] or target_code.shape[0] != conditioning.shape[0]:
+        raise ValueError(
+            f"conditioning, target_code and the scattering fit need one entry per image, got "
+            f"{conditioning.shape[0]}, {target_code.shape[0]} and {fit.albedo.shape[0]} (expand a one-source fit)"
+        )
+    normals, keep = hint_surface(conditioning)
     relit = torch.zeros_like(normals)
     pairs = torch.stack([fit.wrap, fit.sigma], dim=-1)
     for wrap, sigma in torch.unique(pairs.detach(), dim=0).tolist():
