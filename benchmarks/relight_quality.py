@@ -36,7 +36,7 @@ from diamond_sss.diffusion.geometry import StoredMapsGeometry
 from diamond_sss.diffusion.relight.baselines import lambertian_relight
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, model_to_image
 from diamond_sss.diffusion.relight.config import RelightModelConfig
-from diamond_sss.diffusion.relight.hint import configured_hint
+from diamond_sss.diffusion.relight.hint import configured_fit, relit_hint
 from diamond_sss.diffusion.relight.inference import load_model, relight_view
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.evaluation.figures import save_image_grid, to_display
@@ -48,12 +48,12 @@ RESULTS = Path(__file__).resolve().parent / "results" / "relight_quality"
 
 
 def shading_hint(model, conditioning: Tensor, target_codes: Tensor, source_code: Tensor) -> Tensor:
-    """The model's own hint, or the default configuration's for a model trained without one."""
-    source_codes = source_code.expand_as(target_codes)
-    hint = model.hint(conditioning, target_codes, source_codes)
-    if hint is None:
-        hint = configured_hint(RelightModelConfig(), conditioning, target_codes, source_codes)
-    return hint
+    """The model's own hint, or the default configuration's for a model trained without one; the scattering
+    is fitted once to the view's source ``conditioning[:1]`` lit by ``source_code [10]``."""
+    fit = model.scattering_fit(conditioning[:1], source_code[None])
+    if fit is None:
+        fit = configured_fit(RelightModelConfig(), conditioning[:1], source_code[None])
+    return relit_hint(conditioning, target_codes, fit.expand(target_codes.shape[0]))
 
 
 def evaluate_object(

@@ -164,9 +164,3 @@ def configured_fit(config: RelightModelConfig, conditioning: Tensor, source_code
     sigmas = tuple(blur * conditioning.shape[-1] for blur in config.hint_blurs)
     return fit_scattering(conditioning, source_code, blur_sigmas=sigmas, wraps=config.hint_wraps)
 
-
-def configured_hint(
-    config: RelightModelConfig, conditioning: Tensor, target_code: Tensor, source_code: Tensor
-) -> Tensor:
-    """:func:`lambertian_hint` with the grids of ``config``."""
-    return relit_hint(conditioning, target_code, configured_fit(config, conditioning, source_code))
