@@ -439,7 +439,7 @@ def test_cuda_matches_cpu():
     for device in ("cpu", "cuda"):
         uv = sample_foreground_pixels(mask.to(device), 50, torch.Generator().manual_seed(0)).to(torch.float64)
         cams = [tuple(x.to(device) for x in view) for view in (src, tgt)]
-        depth = src_depth.to(device).requires_grad_(True)
+        depth = src_depth.detach().to(device).requires_grad_(True)  # a fresh leaf on each device
         terms = run(*cams, depth, tgt_depth.to(device), cfg, uv=uv, sil=sil.to(device))
         (terms.silhouette + terms.depth).backward()
         results.append((terms.silhouette.item(), terms.depth.item(), depth.grad.cpu()))

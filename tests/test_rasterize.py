@@ -395,25 +395,45 @@ def test_invalid_inputs_raise():
             rasterize(means, quats, scales, opacities, features, viewmats, Ks, 8, 8, backend="cuda")
 
 
+def _outputs_and_gradients(scene, device: str):
+    """Forward outputs, radii, screen-space and input gradients of ``rasterize`` on ``device`` (on the CPU).
+
+    Inputs are fresh leaves on ``device`` (``detach().to()``), so each run owns its gradients.
+    """
+    inputs = [t.detach().to(device).requires_grad_(i < 5) for i, t in enumerate(scene)]
+    out = rasterize(*inputs, 56, 40)
+    assert out.info["backend"] == device
+    out.info["means2d"].retain_grad()
+    loss = (out.features * torch.linspace(0, 1, 5, device=device)).sum() + (out.depth * out.alpha).sum()
+    loss.backward()
+    grads = [t.grad.cpu() for t in inputs[:5]]
+    return (out.features.detach().cpu(), out.depth.detach().cpu(), out.alpha.detach().cpu(),
+            out.info["radii"].cpu(), out.info["means2d"].grad.cpu(), grads)  # fmt: skip
+
+
+def _parity_scene(per_camera: bool):
+    scene = _random_scene(200, 3, 5, seed=7)
+    if per_camera:
+        scene = scene[:4] + (torch.rand(3, 200, 5, generator=torch.Generator().manual_seed(8)),) + scene[5:]
+    return scene
+
+
+@pytest.mark.parametrize("per_camera", [False, True])
+def test_cpu_runs_are_identical(per_camera):
+    """The parity harness on CPU twice: bit-identical outputs and gradients (and the harness itself works)."""
+    scene = _parity_scene(per_camera)
+    first, second = _outputs_and_gradients(scene, "cpu"), _outputs_and_gradients(scene, "cpu")
+    for a, b in zip(first[:5] + tuple(first[5]), second[:5] + tuple(second[5])):
+        assert torch.equal(a, b)
+    assert all(t.grad is None for t in scene)
+
+
 @cuda
 @pytest.mark.cuda
 @pytest.mark.parametrize("per_camera", [False, True])
 def test_cpu_cuda_parity(per_camera):
-    scene = _random_scene(200, 3, 5, seed=7)
-    if per_camera:
-        scene = scene[:4] + (torch.rand(3, 200, 5, generator=torch.Generator().manual_seed(8)),) + scene[5:]
-    results = {}
-    for device in ("cpu", "cuda"):
-        inputs = [t.to(device).requires_grad_(i < 5) for i, t in enumerate(scene)]
-        out = rasterize(*inputs, 56, 40)
-        assert out.info["backend"] == device
-        out.info["means2d"].retain_grad()
-        loss = (out.features * torch.linspace(0, 1, 5, device=device)).sum() + (out.depth * out.alpha).sum()
-        loss.backward()
-        grads = [t.grad.cpu() for t in inputs[:5]]
-        results[device] = (out.features.detach().cpu(), out.depth.detach().cpu(), out.alpha.detach().cpu(),
-                           out.info["radii"].cpu(), out.info["means2d"].grad.cpu(), grads)  # fmt: skip
-    cpu, gpu = results["cpu"], results["cuda"]
+    scene = _parity_scene(per_camera)
+    cpu, gpu = _outputs_and_gradients(scene, "cpu"), _outputs_and_gradients(scene, "cuda")
     for a, b in zip(cpu[:3], gpu[:3]):
         torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-3)
     assert (cpu[3] != gpu[3]).float().mean() < 0.01  # radii: ceil() may differ where float32 rounding does

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import pytest
 import torch
-from accelerate import Accelerator
 
 from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.common.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from diamond_sss.diffusion.common.hashing import files_hash, state_dict_hash
+from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
 from diamond_sss.diffusion.common.sampling import SchedulerConfig, ddim_sample, make_ddim_scheduler
 
 
@@ -75,7 +75,7 @@ def test_ddim_with_an_exact_denoiser_recovers_the_target():
 
 
 def test_checkpoints_are_complete_and_pruned(tmp_path):
-    accelerator = Accelerator(cpu=True)
+    accelerator = make_accelerator()
     model = accelerator.prepare(torch.nn.Linear(2, 2))
     for step in (1, 2, 3):
         save_checkpoint(accelerator, tmp_path, step, extra={"note": step}, keep=2)
@@ -87,3 +87,25 @@ def test_checkpoints_are_complete_and_pruned(tmp_path):
         model.weight.zero_()
     assert load_checkpoint(accelerator, tmp_path / "step_00000003") == {"step": 3, "note": 3}
     assert torch.equal(model.weight, saved)
+
+
+def test_accelerators_with_other_settings_follow_one_another():
+    """Fine-tunes run one after another in one process with other precisions (accelerate refuses that)."""
+    assert make_accelerator("bf16").mixed_precision == "bf16"
+    assert make_accelerator("no").mixed_precision == "no"
+    assert make_accelerator("no").device.type == ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def test_deterministic_kernels_are_scoped_to_the_call():
+    seen = {}
+
+    @deterministic_kernels
+    def body():
+        seen["inside"] = (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic)
+        raise RuntimeError("fails inside")
+
+    before = (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic)
+    with pytest.raises(RuntimeError, match="fails inside"):
+        body()
+    assert seen["inside"] == (True, True)
+    assert (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic) == before

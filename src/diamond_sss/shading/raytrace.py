@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diamond_sss.rendering.projection import quat_to_rotmat
+from diamond_sss.utils import rng
 
 CULL_SIGMAS = 3.0
 
@@ -153,8 +154,8 @@ def gaussian_transmittance(
 
 
 def sample_uniform_sphere(num: int, *, generator: torch.Generator | None = None, device=None) -> Tensor:
-    """``num`` directions uniform on the unit sphere (normalised Gaussian samples). ``-> [num, 3]``."""
-    samples = torch.randn(num, 3, generator=generator, device=device)
+    """``num`` directions uniform on the unit sphere (normalised Gaussian samples) on ``device``. ``-> [num, 3]``."""
+    samples = rng.randn(num, 3, generator=generator, device=device)
     return F.normalize(samples, dim=-1)
 
 

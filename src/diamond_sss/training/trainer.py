@@ -4,7 +4,10 @@ One step: draw ``B`` (view, light) images (a pure function of the step, so resum
 batches), render them with deferred shading, add the objective's terms (photometric, regularisers,
 ray-traced visibility every ``raytrace_every`` steps, multi-view consistency), back-propagate, step Adam,
 and let gsplat's ``DefaultStrategy`` densify and prune (or keep the Gaussian count fixed).
-Every random draw of step ``t`` comes from generators seeded with ``(seed, t)``.
+Every random draw of step ``t`` comes from the streams of :mod:`diamond_sss.utils.rng` seeded with
+``(seed, t)``: host streams for decisions taken in Python, device streams for tensors on the training device.
+The step never waits for the device: the loss terms stay there (:class:`LossLog`) and are read, and checked
+for non-finite values, once every ``log_every`` steps and before every checkpoint.
 """
 
 from __future__ import annotations
@@ -33,8 +36,10 @@ from diamond_sss.shading.sh import visibility_from_sh
 from diamond_sss.training.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.lattice import unify_lattices
+from diamond_sss.training.loss_log import LossLog
 from diamond_sss.training.objective import TargetBatch, image_objective
 from diamond_sss.training.schedules import exponential_lr, step_decay
+from diamond_sss.utils import rng
 from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
 
 logger = logging.getLogger(__name__)
@@ -86,11 +91,6 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
-def step_generator(seed: int, step: int, stream: int) -> torch.Generator:
-    """A CPU generator for random stream ``stream`` of step ``step``."""
-    return torch.Generator().manual_seed((seed * 1_000_003 + step) * 16 + stream)
-
-
 class Trainer:
     """Reconstructs a relightable scene from one or more image sources sharing a lattice of cameras/lights.
 
@@ -123,6 +123,8 @@ class Trainer:
         self.camera_centers = camera_centers(self.union.viewmats)
         self.width, self.height = self.union.width, self.union.height
         self.view_silhouettes = self._view_silhouettes()
+        self._target_silhouettes: dict[int, Tensor] = {}
+        self.loss_log = LossLog()
         self.lpips = load_lpips(cfg.lpips_weights or None) if cfg.lambda_lpips > 0 else None
         if self.lpips is not None:
             self.lpips = self.lpips.to(self.device)
@@ -198,14 +200,15 @@ class Trainer:
         """One Adam per Gaussian parameter (the layout gsplat's strategies need), the MLP and the light."""
         cfg = self.cfg
         params = scene.gaussians.params
+        fused = {"fused": True} if self.device.type == "cuda" else {}
         optimizers: dict[str, torch.optim.Optimizer] = {
             "means": torch.optim.Adam([params["means"]], lr=cfg.position_lr_init * self.bounds.radius,
-                                      eps=1e-15),
+                                      eps=1e-15, **fused),
         }
         for name, key in GAUSSIAN_LR_KEYS.items():
-            optimizers[name] = torch.optim.Adam([params[name]], lr=getattr(cfg, key), eps=1e-15)
-        optimizers["mlp"] = torch.optim.Adam(scene.mlp.parameters(), lr=cfg.sss_lr)
-        optimizers["light"] = torch.optim.Adam([scene.log_light_scale], lr=cfg.light_lr)
+            optimizers[name] = torch.optim.Adam([params[name]], lr=getattr(cfg, key), eps=1e-15, **fused)
+        optimizers["mlp"] = torch.optim.Adam(scene.mlp.parameters(), lr=cfg.sss_lr, **fused)
+        optimizers["light"] = torch.optim.Adam([scene.log_light_scale], lr=cfg.light_lr, **fused)
         return optimizers
 
     def set_learning_rates(self, optimizers: dict[str, torch.optim.Optimizer], step: int) -> None:
@@ -223,9 +226,13 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def draw_batch(self, step: int) -> tuple[list[tuple[int, int]], TargetBatch, Tensor, Tensor]:
-        """The step's images: (source, observation) pairs, targets, light positions and intensities."""
+        """The step's images: (source, observation) pairs, targets, light positions and intensities.
+
+        Also keeps the batch's views and its masks on the host (``_batch_views``, ``_batch_masks``) for the
+        multi-view pixel sampling.
+        """
         cfg = self.cfg
-        generator = step_generator(cfg.seed, step, 0)
+        generator = rng.stream_generator(cfg.seed, step, 0)
         picks = [self.index[i] for i in seeded_epoch_indices(step, cfg.batch_size, len(self.index), cfg.seed)]
         rgbs, masks, weights, views, lights = [], [], [], [], []
         for source_index, obs_index in picks:
@@ -237,24 +244,26 @@ class Trainer:
             views.append(self.union.view_maps[source_index][sample.view])
             lights.append(self.union.light_maps[source_index][sample.light])
         rgb = torch.stack(rgbs).to(self.device)
-        mask = torch.stack(masks).to(self.device)
+        host_masks = torch.stack(masks)
+        mask = host_masks.to(self.device)
         if cfg.random_background:
-            background = torch.rand(len(picks), 1, 1, 3, generator=generator).to(self.device)
+            background = rng.rand(len(picks), 1, 1, 3, generator=generator, device=self.device)
             rgb = rgb + (1.0 - mask) * background
         views_t = torch.tensor(views, device=self.device)
         lights_t = torch.tensor(lights, device=self.device)
         target = TargetBatch(rgb=rgb, mask=mask, weights=torch.tensor(weights, device=self.device),
                              viewmats=self.viewmats[views_t], Ks=self.Ks[views_t])
         self._batch_views = views
+        self._batch_masks = host_masks
         return picks, target, self.light_positions[lights_t], self.light_intensities[lights_t]
 
     def raytrace_term(self, scene: RelightableScene, light_positions: Tensor, step: int) -> Tensor:
         """Eq. A.7 on a random subset of Gaussians: towards the batch's lights and random directions."""
         cfg = self.cfg
         g = scene.gaussians
-        generator = step_generator(cfg.seed, step, 1)
+        generator = rng.stream_generator(cfg.seed, step, 1, self.device)
         count = min(cfg.raytrace_gaussians, g.num_gaussians)
-        subset = torch.randperm(g.num_gaussians, generator=generator)[:count].to(self.device)
+        subset = rng.randperm(g.num_gaussians, generator=generator)[:count]
         with torch.no_grad():
             traced = raytraced_visibility(g.means.detach(), g.quats.detach(), g.scales.detach(),
                                           g.opacities.detach(), light_positions, num_samples=cfg.raytrace_directions,
@@ -266,7 +275,7 @@ class Trainer:
                         step: int) -> dict[str, Tensor]:
         """Silhouette and depth consistency between batch views (sources) and nearby lattice views."""
         cfg = self.cfg
-        generator = step_generator(cfg.seed, step, 2)
+        generator = rng.stream_generator(cfg.seed, step, 2)
         candidates = torch.arange(self.union.num_views) if cfg.mv_include_unobserved_views else torch.tensor(
             sorted(self.view_silhouettes))
         centers = self.camera_centers
@@ -291,19 +300,20 @@ class Trainer:
         geometry = scene.render_geometry(self.viewmats[tgt], tgt_K, tgt_width, tgt_height)
         tgt_depth, tgt_alpha = geometry.depth[..., 0], geometry.alpha[..., 0]
         silhouettes = torch.stack([
-            resize_area(self.view_silhouettes[t][..., None], tgt_height, tgt_width)[..., 0]
-            if t in self.view_silhouettes else tgt_alpha[p].detach()
+            self._target_silhouette(t, tgt_height, tgt_width) if t in self.view_silhouettes
+            else tgt_alpha[p].detach()
             for p, t in enumerate(targets)
         ])
         src = torch.tensor(sources, device=self.device)
-        uv_list = [sample_foreground_pixels(target.mask[b, ..., 0], cfg.mv_pixels_per_pair, generator)
+        uv_list = [sample_foreground_pixels(self._batch_masks[b, ..., 0], cfg.mv_pixels_per_pair, generator)
                    for b in sources]
         count = max(1, max(uv.shape[0] for uv in uv_list))
-        uv = torch.full((len(sources), count, 2), 0.5, device=self.device)
-        valid = torch.zeros(len(sources), count, dtype=torch.bool, device=self.device)
+        host_uv = torch.full((len(sources), count, 2), 0.5)
+        host_valid = torch.zeros(len(sources), count, dtype=torch.bool)
         for p, pixels in enumerate(uv_list):
-            uv[p, : pixels.shape[0]] = pixels.to(self.device)
-            valid[p, : pixels.shape[0]] = True
+            host_uv[p, : pixels.shape[0]] = pixels
+            host_valid[p, : pixels.shape[0]] = True
+        uv, valid = host_uv.to(self.device), host_valid.to(self.device)
         terms = multiview_losses_batched(
             render.gbuffer.depth[src, ..., 0], render.gbuffer.alpha[src, ..., 0], uv, target.viewmats[src],
             target.Ks[src], tgt_depth, tgt_alpha, silhouettes, self.viewmats[tgt], tgt_K,
@@ -316,9 +326,20 @@ class Trainer:
             out["mv_depth"] = cfg.lambda_depth * terms.depth
         return out
 
+    def _target_silhouette(self, view: int, height: int, width: int) -> Tensor:
+        """The mask of ``view`` area-resized to the multi-view target resolution (computed once per view)."""
+        cached = self._target_silhouettes.get(view)
+        if cached is None or cached.shape != (height, width):
+            cached = resize_area(self.view_silhouettes[view][..., None], height, width)[..., 0]
+            self._target_silhouettes[view] = cached
+        return cached
+
     def training_step(self, scene: RelightableScene, optimizers: dict[str, torch.optim.Optimizer],
-                      strategy_state: dict, step: int) -> dict[str, float]:
-        """One optimisation step; returns the loss terms (floats)."""
+                      strategy_state: dict, step: int) -> dict[str, Tensor]:
+        """One optimisation step; returns the loss terms and their ``total`` (detached scalars on the device).
+
+        Nothing here reads a value back from the device: :class:`LossLog` checks the terms later.
+        """
         cfg = self.cfg
         torch.manual_seed(cfg.seed * 1_000_003 + step)
         self.set_learning_rates(optimizers, step)
@@ -334,9 +355,6 @@ class Trainer:
         if cfg.lambda_sil > 0 or cfg.lambda_depth > 0:
             terms.update(self.multiview_terms(scene, render, target, step))
         total = torch.stack(list(terms.values())).sum()
-        if not torch.isfinite(total):
-            raise FloatingPointError(f"loss is {float(total)} at step {step}: terms "
-                                     f"{ {k: float(v) for k, v in terms.items()} }")
         total.backward()
         for optimizer in optimizers.values():
             optimizer.step()
@@ -344,8 +362,8 @@ class Trainer:
         if self.strategy is not None and scene.gaussians.num_gaussians < cfg.max_gaussians:
             self.strategy.step_post_backward(scene.gaussians.params, gaussian_optimizers(optimizers),
                                              strategy_state, step, info, packed=False)
-        values = {k: float(v.detach()) for k, v in terms.items()}
-        values["total"] = float(total.detach())
+        values = {k: v.detach() for k, v in terms.items()}
+        values["total"] = total.detach()
         return values
 
     # ------------------------------------------------------------------ the loop
@@ -356,6 +374,9 @@ class Trainer:
         atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
         start_step = 0
         checkpoint = latest_checkpoint(self.run_dir) if resume else None
+        if resume and checkpoint is None:
+            logger.warning("%s: --resume but no checkpoint in %s: training from step 0", self.run_dir,
+                           self.run_dir / "checkpoints")
         if checkpoint is not None:
             loaded = load_checkpoint(checkpoint)
             scene = scene_from_tensors(loaded.scene, cfg).to(self.device)
@@ -366,6 +387,7 @@ class Trainer:
             strategy_state.update({k: (v.to(self.device) if torch.is_tensor(v) else v)
                                    for k, v in loaded.strategy.items()})
             start_step = loaded.step
+            logger.info("%s: resuming from step %d (%s)", self.run_dir, start_step, checkpoint)
             self.init_source = loaded.extra.get("init_source", "checkpoint")
             history = loaded.extra.get("history", [])
             elapsed = float(loaded.extra.get("seconds", 0.0))
@@ -379,11 +401,19 @@ class Trainer:
         writer = _summary_writer(self.run_dir / "tb")
         started = time.perf_counter() - elapsed
         values: dict[str, float] = {"total": float("nan")}
+        self.loss_log = LossLog()
         bar = tqdm(range(start_step, cfg.iterations), initial=start_step, total=cfg.iterations,
                    disable=not self.show_progress, desc="train", dynamic_ncols=True)
         for step in bar:
-            values = self.training_step(scene, optimizers, strategy_state, step)
+            try:
+                self.loss_log.record(step, self.training_step(scene, optimizers, strategy_state, step))
+            except Exception:
+                self.loss_log.flush()  # a non-finite loss before the failure is the better diagnosis
+                raise
             done = step + 1
+            checkpoint_due = done % cfg.checkpoint_every == 0 and done < cfg.iterations
+            if done % cfg.log_every == 0 or done == cfg.iterations or checkpoint_due:
+                values = self.loss_log.flush()
             if done % cfg.log_every == 0 or done == cfg.iterations:
                 record = {"step": done, "gaussians": scene.gaussians.num_gaussians,
                           "light_scale": float(scene.light_scale.detach()), **values}
@@ -395,7 +425,7 @@ class Trainer:
                             writer.add_scalar(f"train/{key}", value, done)
             if writer is not None and (done % cfg.image_log_every == 0 or done == cfg.iterations):
                 self._log_images(writer, scene, done)
-            if done % cfg.checkpoint_every == 0 and done < cfg.iterations:
+            if checkpoint_due:
                 save_checkpoint(self.run_dir, done, scene_tensors(scene), optimizers, strategy_state,
                                 {"init_source": self.init_source, "history": history,
                                  "seconds": time.perf_counter() - started})

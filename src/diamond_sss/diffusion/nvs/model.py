@@ -25,6 +25,7 @@ from diamond_sss.data.conventions import scale_intrinsics
 from diamond_sss.diffusion.nvs.layers import ConditioningSlot, graft_free3d_layers, set_layer_checkpointing
 from diamond_sss.diffusion.nvs.rays import RELATIVE_POSE_CHANNELS, ray_embedding, relative_spherical_pose
 from diamond_sss.diffusion.nvs.warp import WARP_CHANNELS, forward_warp, resize_depth
+from diamond_sss.utils import rng
 from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
 
 CONFIG_NAME = "config.json"
@@ -376,13 +377,13 @@ class NVSModel(nn.Module):
             hint = self.warp_hint(batch)
             if self.config.hint_residual:
                 target = target - hint_base(hint)
-        t = torch.randint(0, scheduler.config.num_train_timesteps, (b,), generator=generator, device=device)
+        t = rng.randint(scheduler.config.num_train_timesteps, b, generator=generator, device=device)
         t = t.repeat_interleave(v)
-        noise = torch.randn(target.shape, generator=generator, device=device)
+        noise = rng.randn(*target.shape, generator=generator, device=device)
         noisy = scheduler.add_noise(target, noise, t)
         rays, pose = self.conditioning(batch, reference)
         p = self.config.condition_dropout
-        u = torch.rand(b * v, generator=generator, device=device)
+        u = rng.rand(b * v, generator=generator, device=device)
         drop_image = u < 2 * p
         keep_input = ~((u >= p) & (u < 3 * p))
         embedding = self.reference_encoder(reference).repeat_interleave(v, dim=0)
@@ -496,5 +497,5 @@ def shared_noise(
     device: torch.device | str | None = None,
 ) -> Tensor:
     """One Gaussian noise sample per object, repeated over its views: ``[B,V,*shape]``."""
-    noise = torch.randn((num_objects, 1, *shape), generator=generator, device=device)
+    noise = rng.randn(num_objects, 1, *shape, generator=generator, device=device)
     return noise.expand(num_objects, num_views, *shape).contiguous()

@@ -13,10 +13,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
-from accelerate import Accelerator
 from diffusers.optimization import get_constant_schedule_with_warmup
 
 from diamond_sss.diffusion.common import EMA, latest_checkpoint, load_checkpoint, save_checkpoint
+from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel, make_train_scheduler
 from diamond_sss.utils.io import atomic_write_json
@@ -43,6 +43,7 @@ class FinetuneConfig:
     model: NVSConfig = field(default_factory=NVSConfig)
 
 
+@deterministic_kernels
 def finetune(
     data: list[str | Path],
     out: str | Path,
@@ -58,7 +59,7 @@ def finetune(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
-    accelerator = Accelerator(cpu=not torch.cuda.is_available())
+    accelerator = make_accelerator()
     model = NVSModel(config.model)
     if config.gradient_checkpointing:
         model.enable_gradient_checkpointing()

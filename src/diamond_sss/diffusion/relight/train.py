@@ -11,11 +11,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
-from accelerate import Accelerator
 from torch import Tensor, nn
 
 from diamond_sss.diffusion.common.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from diamond_sss.diffusion.common.ema import EMA
+from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
 from diamond_sss.diffusion.relight.augment import RelightAugmentConfig, augment_batch
 from diamond_sss.diffusion.relight.data import RelightViews
@@ -124,6 +124,7 @@ def lr_factor(step: int, warmup: int, total: int) -> float:
     return 0.1 + 0.45 * (1.0 + math.cos(math.pi * progress))
 
 
+@deterministic_kernels
 def finetune(
     views: RelightViews,
     out: str | os.PathLike,
@@ -143,7 +144,7 @@ def finetune(
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "selection.json", views.selection)
     atomic_write_json(out / "train_config.json", asdict(config))
-    accelerator = Accelerator(mixed_precision=config.mixed_precision, cpu=not torch.cuda.is_available())
+    accelerator = make_accelerator(config.mixed_precision)
     trainable = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(trainable, lr=config.learning_rate, weight_decay=config.weight_decay)
     schedule = torch.optim.lr_scheduler.LambdaLR(

@@ -1,0 +1,151 @@
+"""The engine's device discipline: seeded streams on the data's device, no per-step sync, non-finite stops."""
+
+from __future__ import annotations
+
+import ast
+import logging
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from diamond_sss.data import OLATDataset
+from diamond_sss.data.analytic import make_capture
+from diamond_sss.gaussians.model import nearest_neighbor_scales
+from diamond_sss.training.checkpoint import latest_checkpoint
+from diamond_sss.training.config import make_config
+from diamond_sss.training.loss_log import LossLog
+from diamond_sss.training.trainer import ImageSource, Trainer
+from diamond_sss.utils import rng
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "diamond_sss"
+RANDOM_FUNCTIONS = {"rand", "randn", "randint", "randperm", "normal", "multinomial", "bernoulli", "rand_like",
+                    "randn_like", "randint_like"}
+TINY = {
+    "num_gaussians": 200, "batch_size": 2, "lambda_lpips": 0.0, "raytrace_gaussians": 32, "raytrace_every": 2,
+    "mv_pixels_per_pair": 16, "mv_pairs_per_step": 1, "densify": False, "image_log_every": 1000, "device": "cpu",
+}
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    root = tmp_path_factory.mktemp("capture")
+    make_capture(root, views=5, lights=2, size=16)
+    return root
+
+
+def test_streams_draw_on_the_generator_device_and_land_on_the_requested_one():
+    generator = rng.stream_generator(3, 7, 1)
+    assert generator.device.type == "cpu"
+    expected = torch.randn(4, 3, generator=torch.Generator().manual_seed(rng.stream_seed(3, 7, 1)))
+    on_meta = rng.randn(4, 3, generator=rng.stream_generator(3, 7, 1), device="meta")
+    assert on_meta.device.type == "meta" and on_meta.shape == (4, 3)
+    torch.testing.assert_close(rng.randn(4, 3, generator=generator), expected)
+    assert rng.randperm(6, generator=rng.stream_generator(0, 0, 0), device="meta").dtype == torch.int64
+    assert rng.randint(5, 3, generator=rng.stream_generator(0, 0, 0)).tolist() == torch.randint(
+        5, (3,), generator=torch.Generator().manual_seed(rng.stream_seed(0, 0, 0))).tolist()
+    assert rng.rand(2, device="cpu").device.type == "cpu"
+    assert rng.stream_seed(1, 2, 3) == (1_000_003 + 2) * 16 + 3
+    with pytest.raises(ValueError, match="stream"):
+        rng.stream_seed(0, 0, 16)
+
+
+def _random_calls_with_generator_and_device(path: Path) -> list[int]:
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                and isinstance(node.func.value, ast.Name) and node.func.value.id == "torch"):
+            keywords = {k.arg for k in node.keywords}
+            if node.func.attr in RANDOM_FUNCTIONS and {"generator", "device"} <= keywords:
+                lines.append(node.lineno)
+    return lines
+
+
+def test_only_the_rng_module_pairs_a_generator_with_a_device():
+    """torch refuses a generator of another device than the draw's (CUDA: 'Expected a cuda device type for
+    generator'); a draw that names both is made in utils/rng.py, which draws on the generator's device."""
+    offenders = {
+        str(path.relative_to(SRC)): lines
+        for path in SRC.rglob("*.py")
+        if path.name != "rng.py" and (lines := _random_calls_with_generator_and_device(path))
+    }
+    assert offenders == {}
+    bad = "import torch\ntorch.randn(3, generator=g, device=d)\n"
+    probe = SRC.parent.parent / "tests" / "_probe_rng.py"
+    try:
+        probe.write_text(bad)
+        assert _random_calls_with_generator_and_device(probe) == [2]
+    finally:
+        probe.unlink()
+
+
+def test_loss_log_reads_once_and_names_the_first_non_finite_step():
+    log = LossLog()
+    log.record(0, {"l1": torch.tensor(0.5), "total": torch.tensor(0.5)})
+    log.record(1, {"l1": torch.tensor(0.25), "raytrace": torch.tensor(0.1), "total": torch.tensor(0.35)})
+    assert log.flush() == pytest.approx({"l1": 0.25, "raytrace": 0.1, "total": 0.35})
+    assert log.flush() == {}
+    log.record(4, {"l1": torch.tensor(0.5)})
+    log.record(5, {"l1": torch.tensor(0.5), "mask": torch.tensor(math.nan)})
+    log.record(6, {"l1": torch.tensor(math.inf)})
+    with pytest.raises(FloatingPointError, match=r"step 5: mask"):
+        log.flush()
+
+
+class _NaNTrainer(Trainer):
+    """Its mask term turns NaN at step ``nan_at``."""
+
+    nan_at = 3
+
+    def training_step(self, scene, optimizers, strategy_state, step):
+        values = super().training_step(scene, optimizers, strategy_state, step)
+        if step == self.nan_at:
+            values["mask"] = torch.tensor(math.nan)
+        return values
+
+
+def test_training_stops_at_a_non_finite_loss_and_keeps_the_last_good_checkpoint(capture, tmp_path):
+    cfg = make_config("diamond", overrides={**TINY, "iterations": 8, "checkpoint_every": 2, "log_every": 5})
+    trainer = _NaNTrainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False)
+    with pytest.raises(FloatingPointError, match=r"step 3: mask"):
+        trainer.run()
+    assert latest_checkpoint(tmp_path / "run").name.endswith("2")
+    assert not (tmp_path / "run" / "model.safetensors").exists()
+
+
+def test_resume_without_a_checkpoint_says_so(capture, tmp_path, caplog):
+    cfg = make_config("diamond", overrides={**TINY, "iterations": 1, "log_every": 1})
+    trainer = Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False)
+    with caplog.at_level(logging.WARNING, logger="diamond_sss.training.trainer"):
+        trainer.run(resume=True)
+    assert "no checkpoint" in caplog.text and "step 0" in caplog.text
+
+
+def test_training_step_returns_device_tensors_without_reading_them(capture, tmp_path):
+    cfg = make_config("diamond", overrides={**TINY, "iterations": 2})
+    trainer = Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False)
+    scene = trainer.build_scene()
+    values = trainer.training_step(scene, trainer.build_optimizers(scene), {}, 0)
+    assert {"raytrace", "mv_silhouette", "total"} <= values.keys()
+    assert all(torch.is_tensor(v) and v.device == trainer.device and v.ndim == 0 for v in values.values())
+
+
+def test_nearest_neighbour_scales_match_brute_force_with_duplicates():
+    points = torch.randn(1500, 3, generator=torch.Generator().manual_seed(4))
+    points[10] = points[11]  # a duplicate: its nearest neighbour is at distance 0 (clamped to 1e-7)
+    dists = torch.cdist(points.double(), points.double()) + torch.eye(1500, dtype=torch.float64) * 1e9
+    expected = dists.topk(3, largest=False).values.square().mean(dim=1).clamp_min(1e-7).sqrt().float()
+    torch.testing.assert_close(nearest_neighbor_scales(points), expected)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_the_default_preset_trains_on_cuda(capture, tmp_path):
+    """The `diamond` preset with every term on (ray-traced visibility each step, multi-view losses)."""
+    cfg = make_config("diamond", overrides={**TINY, "device": "cuda", "iterations": 4, "log_every": 2,
+                                           "raytrace_every": 1, "densify": True, "densify_from_iter": 1,
+                                           "densification_interval": 2})
+    result = Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False).run()
+    assert math.isfinite(result.final_loss)
+    assert {"raytrace", "mv_silhouette", "mv_depth"} <= result.history[-1].keys()
