@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 export HF_HUB_OFFLINE := 1
 export TRANSFORMERS_OFFLINE := 1
 
-.PHONY: demo test setup system-deps lint clean-venv
+.PHONY: demo test setup system-deps lint clean-venv gpu-setup gpu-check
 
 setup: $(STAMP)
 
@@ -39,3 +39,14 @@ lint: $(STAMP)
 
 clean-venv:
 	rm -rf $(VENV)
+
+# On a CUDA machine: GPU_PYTHON is a Python whose torch is a CUDA build (kept: the project asks for torch>=2.4
+# and nothing here pins a CPU build). gpu-setup installs the project into it; gpu-check builds gsplat's CUDA
+# kernels, runs the CUDA tests, the whole suite, the speed benchmarks on CUDA and a demo-object reconstruction,
+# and writes benchmarks/results/gpu_check/report.md and report.json.
+GPU_PYTHON ?= python3
+gpu-setup:
+	$(GPU_PYTHON) -m pip install --no-build-isolation -e ".[all,dev]"
+
+gpu-check:
+	$(GPU_PYTHON) scripts/gpu_check.py $(GPU_CHECK_ARGS)

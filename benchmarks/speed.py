@@ -1,12 +1,16 @@
-"""Speed of the reconstruction engine: deferred render (forward / backward) and full training steps.
+"""Speed of the reconstruction engine: deferred render (forward / backward), training steps, scene set-up.
 
-Cases: Gaussian counts x square resolutions on an analytic sphere capture (CPU by default 1k/5k/20k x 64/128 px;
-on CUDA, when present, 300k Gaussians at 800 px). For each case: the median time of a full deferred render
-(SSS MLP + rasterization of the 14-channel G-buffer + GGX shading) forward and backward, and of a full training
-step (batch 1, the `diamond` preset's objective) with and without the multi-view losses.
-Prints a table, writes ``benchmarks/results/speed.json`` and ``speed.md``.
+Cases: Gaussian counts x square resolutions on an analytic sphere capture. CPU: 1k/5k/20k x 64/128 px. CUDA
+(``--device cuda``, or ``auto`` when a GPU is present): the issue's two targets, 10k Gaussians at 64 px and
+300k at 800 px. For each case: the median time of a full deferred render (SSS MLP + rasterization of the
+G-buffer + GGX shading) forward and backward, and the mean time of ``--steps`` consecutive training steps
+(batch 1, the `diamond` preset's full objective: ray-traced visibility every ``raytrace_every`` steps
+included) with and without the multi-view losses, timed with one device synchronisation at the end, as a
+real run would see them. Also: the initial scales of a 1M-point cloud (``nearest_neighbor_scales``).
+Prints a table, writes ``speed.json`` and ``speed.md`` under ``--output``.
 
-    python benchmarks/speed.py                      # CPU, ~2-4 min on 2 cores
+    python benchmarks/speed.py                      # CPU, ~3-5 min on 2 cores
+    python benchmarks/speed.py --device cuda        # the CUDA targets (needs gsplat's CUDA build)
     python benchmarks/speed.py --counts 5000 --resolutions 64 --repeats 10
 """
 
@@ -25,6 +29,7 @@ import torch
 
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.data.dataset import OLATDataset
+from diamond_sss.gaussians.model import nearest_neighbor_scales
 from diamond_sss.training.config import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
 
@@ -36,8 +41,9 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize()
 
 
-def time_case(root: Path, count: int, resolution: int, device: str, repeats: int, multiview: bool) -> dict:
-    """Median render forward/backward and training-step times (ms) for one configuration."""
+def time_case(root: Path, count: int, resolution: int, device: str, repeats: int, steps: int,
+              multiview: bool) -> dict:
+    """Median render forward/backward (ms) and mean training-step time (ms) over ``steps`` steps."""
     overrides = {"num_gaussians": count, "batch_size": 1, "densify": False, "lambda_lpips": 0.0, "device": device,
                  "log_every": 10_000, "init": "random"}
     if not multiview:
@@ -50,7 +56,7 @@ def time_case(root: Path, count: int, resolution: int, device: str, repeats: int
         optimizers = trainer.build_optimizers(scene)
         state = trainer._initial_strategy_state()
         dev = trainer.device
-        forward, backward, steps = [], [], []
+        forward, backward = [], []
         cam = dataset.cameras[0]
         light = dataset.lights[0]
         args = (cam.w2c[None].to(dev), cam.K[None].to(dev), cam.width, cam.height, light.position[None].to(dev),
@@ -65,56 +71,92 @@ def time_case(root: Path, count: int, resolution: int, device: str, repeats: int
             _sync(dev)
             end = time.perf_counter()
             scene.zero_grad(set_to_none=True)
-            trainer.training_step(scene, optimizers, state, k)
-            _sync(dev)
-            done = time.perf_counter()
             if k > 0:
                 forward.append(1e3 * (middle - start))
                 backward.append(1e3 * (end - middle))
-                steps.append(1e3 * (done - end))
+        warmup = max(2, cfg.raytrace_every)
+        for step in range(warmup):
+            trainer.training_step(scene, optimizers, state, step)
+        _sync(dev)
+        start = time.perf_counter()
+        for step in range(warmup, warmup + steps):
+            trainer.training_step(scene, optimizers, state, step)
+        _sync(dev)
+        step_ms = 1e3 * (time.perf_counter() - start) / steps
     return {"device": device, "gaussians": count, "resolution": resolution, "multiview": multiview,
             "render_forward_ms": statistics.median(forward), "render_backward_ms": statistics.median(backward),
-            "train_step_ms": statistics.median(steps)}
+            "train_step_ms": step_ms, "steps_per_second": 1e3 / step_ms, "steps": steps}
+
+
+def time_initial_scales(count: int) -> dict:
+    """Seconds to compute the nearest-neighbour initial scales of ``count`` uniform random points (CPU)."""
+    points = torch.rand(count, 3, generator=torch.Generator().manual_seed(0))
+    start = time.perf_counter()
+    nearest_neighbor_scales(points)
+    return {"points": count, "seconds": time.perf_counter() - start}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                        help="cpu: the CPU grid; cuda: the CUDA cases; auto: both when a GPU is present")
     parser.add_argument("--counts", type=int, nargs="+", default=[1000, 5000, 20000])
     parser.add_argument("--resolutions", type=int, nargs="+", default=[64, 128])
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=5, help="renders timed per case (median)")
+    parser.add_argument("--steps", type=int, default=10, help="consecutive training steps timed per CPU case")
+    parser.add_argument("--cuda-steps", type=int, default=200, help="consecutive training steps per CUDA case")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    parser.add_argument("--cuda-count", type=int, default=300_000)
-    parser.add_argument("--cuda-resolution", type=int, default=800)
+    parser.add_argument("--cuda-cases", nargs="+", default=["10000x64", "300000x800"],
+                        help="CUDA cases as GAUSSIANSxPIXELS")
+    parser.add_argument("--scale-points", type=int, default=1_000_000, help="cloud size of the initial-scales row")
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args()
     if args.threads is not None:
         torch.set_num_threads(args.threads)
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda but torch.cuda.is_available() is False")
+    cases = []
+    if args.device in ("auto", "cpu"):
+        cases += [("cpu", n, r, args.steps) for r in args.resolutions for n in args.counts]
+    if args.device == "cuda" or (args.device == "auto" and torch.cuda.is_available()):
+        for case in args.cuda_cases:
+            count, resolution = (int(v) for v in case.lower().split("x"))
+            cases.append(("cuda", count, resolution, args.cuda_steps))
+    elif args.device == "auto":
+        print(f"CUDA cases ({', '.join(args.cuda_cases)}) skipped: no CUDA GPU")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        cases = [("cpu", n, r) for r in args.resolutions for n in args.counts]
-        if torch.cuda.is_available():
-            cases.append(("cuda", args.cuda_count, args.cuda_resolution))
-        else:
-            print(f"CUDA case ({args.cuda_count} Gaussians, {args.cuda_resolution} px) skipped: no CUDA GPU")
-        for device, count, resolution in cases:
+        for device, count, resolution, steps in cases:
             root = Path(tmp) / f"sphere_{resolution}"
             if not root.exists():
                 make_capture(root, views=8, lights=4, size=resolution)
             for multiview in (False, True):
-                rows.append(time_case(root, count, resolution, device, args.repeats, multiview))
+                rows.append(time_case(root, count, resolution, device, args.repeats, steps, multiview))
                 print(rows[-1], flush=True)
-    header = "| device | Gaussians | px | multi-view losses | render fwd ms | render bwd ms | train step ms |"
-    lines = [header, "|---|---|---|---|---|---|---|"]
+    scales = time_initial_scales(args.scale_points)
+    print(scales, flush=True)
+    header = ("| device | Gaussians | px | multi-view losses | render fwd ms | render bwd ms | train step ms "
+              "| steps/s |")
+    lines = [header, "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['device']} | {r['gaussians']} | {r['resolution']} | {'on' if r['multiview'] else 'off'} "
-                     f"| {r['render_forward_ms']:.1f} | {r['render_backward_ms']:.1f} | {r['train_step_ms']:.1f} |")
+                     f"| {r['render_forward_ms']:.1f} | {r['render_backward_ms']:.1f} | {r['train_step_ms']:.1f} "
+                     f"| {r['steps_per_second']:.1f} |")
+    lines.append("")
+    lines.append(f"Initial scales (k-d tree, CPU) of {scales['points']:,} points: {scales['seconds']:.2f} s")
+    for r in rows:
+        if r["device"] == "cuda" and r["multiview"]:
+            minutes = 30_000 * r["train_step_ms"] / 6e4
+            lines.append(f"30,000 steps at {r['resolution']} px, {r['gaussians']:,} Gaussians: {minutes:.1f} min "
+                         "(step time x 30k; image decoding of a real capture not included)")
     table = "\n".join(lines)
     print(table)
     meta = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "torch": torch.__version__,
             "threads": torch.get_num_threads(), "machine": platform.machine(), "processor": platform.processor(),
             "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
     args.output.mkdir(parents=True, exist_ok=True)
-    (args.output / "speed.json").write_text(json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
+    (args.output / "speed.json").write_text(json.dumps({"meta": meta, "results": rows, "initial_scales": scales},
+                                                       indent=2) + "\n")
     (args.output / "speed.md").write_text(f"{json.dumps(meta)}\n\n{table}\n")
 
 

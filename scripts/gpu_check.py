@@ -1,0 +1,196 @@
+"""Everything that needs a CUDA GPU, in one command, with one report (``make gpu-check``).
+
+Steps, each timed and recorded even when an earlier one failed:
+  1. the machine: GPU, driver, CUDA, torch, gsplat, Python;
+  2. gsplat's CUDA build (JIT, first use) with one tiny ``gsplat.rasterization`` call;
+  3. the CUDA tests (``pytest -m cuda``), then the whole suite on the CUDA machine;
+  4. ``benchmarks/speed.py --device cuda`` (training-step targets) and ``benchmarks/speed_raster.py``;
+  5. a demo-object reconstruction on CUDA (`diamond` preset, full objective) and its evaluation on the test
+     split (novel views under novel lights).
+Writes ``report.json`` and ``report.md`` (plus each step's log) under ``--out``.
+
+    python scripts/gpu_check.py --out gpu_check            # ~10-15 min on an H100
+    python scripts/gpu_check.py --skip suite --iterations 1000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import subprocess
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+STEPS = ("build", "cuda-tests", "suite", "speed", "speed-raster", "train", "eval")
+
+
+def run_step(name: str, command: list[str], out: Path, timeout: int, env: dict[str, str]) -> dict:
+    """Run ``command``, log its output to ``out/<name>.log``; return status, seconds and the log's tail."""
+    start = time.perf_counter()
+    log_path = out / f"{name}.log"
+    print(f"[gpu-check] {name}: {' '.join(command)}", flush=True)
+    try:
+        proc = subprocess.run(command, check=False, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
+        output, code = proc.stdout + proc.stderr, proc.returncode
+    except subprocess.TimeoutExpired as exc:
+        output = (exc.stdout or b"").decode(errors="replace") if isinstance(exc.stdout, bytes) else (exc.stdout or "")
+        output += f"\n[gpu-check] timed out after {timeout} s"
+        code = 124
+    log_path.write_text(output)
+    seconds = time.perf_counter() - start
+    print(f"[gpu-check] {name}: exit {code} in {seconds:.0f} s (log: {log_path})", flush=True)
+    return {"step": name, "exit_code": code, "seconds": round(seconds, 1), "log": log_path.name,
+            "tail": output.strip().splitlines()[-15:]}
+
+
+def pytest_counts(lines: list[str]) -> str:
+    """pytest's closing line (``N passed, M failed ...``) from a log tail, or ''."""
+    for line in reversed(lines):
+        if re.search(r"\d+ (passed|failed|error)", line):
+            return line.strip("= ")
+    return ""
+
+
+def machine_facts() -> dict:
+    import torch
+
+    facts = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "python": platform.python_version(),
+             "torch": torch.__version__, "cuda_runtime": torch.version.cuda, "cuda_available": torch.cuda.is_available(),
+             "cpu_count": os.cpu_count()}
+    if torch.cuda.is_available():
+        props = torch.cuda.get_device_properties(0)
+        facts.update(gpu=props.name, gpu_memory_gib=round(props.total_memory / 2**30, 1),
+                     compute_capability=f"{props.major}.{props.minor}")
+    try:
+        import gsplat
+
+        facts["gsplat"] = gsplat.__version__
+    except ImportError:
+        facts["gsplat"] = None
+    try:
+        query = ["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"]
+        facts["driver"] = subprocess.run(query, check=False, capture_output=True, text=True, timeout=30).stdout.strip()
+    except (OSError, subprocess.TimeoutExpired):
+        facts["driver"] = None
+    return facts
+
+
+BUILD = """
+import torch, gsplat
+means = torch.zeros(1, 3, device="cuda"); means[:, 2] = 2.0
+quats = torch.tensor([[1.0, 0, 0, 0]], device="cuda"); scales = torch.full((1, 3), 0.1, device="cuda")
+K = torch.tensor([[[16.0, 0, 8], [0, 16.0, 8], [0, 0, 1]]], device="cuda")
+colors, alphas, _ = gsplat.rasterization(means, quats, scales, torch.ones(1, device="cuda"),
+                                         torch.ones(1, 3, device="cuda"), torch.eye(4, device="cuda")[None], K, 16, 16)
+torch.cuda.synchronize(); print("gsplat CUDA build ok, centre alpha", float(alphas[0, 8, 8, 0]))
+"""
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "gpu_check")
+    parser.add_argument("--skip", nargs="*", default=[], choices=STEPS, help="steps to leave out")
+    parser.add_argument("--iterations", type=int, default=3000, help="steps of the demo-object reconstruction")
+    parser.add_argument("--timeout", type=int, default=1800, help="seconds per step at most")
+    args = parser.parse_args()
+    import torch
+
+    if not torch.cuda.is_available():
+        parser.error("no CUDA GPU (torch.cuda.is_available() is False): this check is for a CUDA machine")
+    out = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    major, minor = torch.cuda.get_device_capability(0)
+    env.setdefault("TORCH_CUDA_ARCH_LIST", f"{major}.{minor}")
+    env.setdefault("MAX_JOBS", str(os.cpu_count() or 4))
+    env.setdefault("TORCH_EXTENSIONS_DIR", str(Path.home() / ".cache" / "torch_extensions"))
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT / "src"), env.get("PYTHONPATH")]))
+    env.setdefault("HF_HUB_OFFLINE", "1")
+    env["PYTHONUNBUFFERED"] = "1"
+    python = sys.executable
+    run_dir = out / "demo_run"
+    from diamond_sss.data.embedded import embedded_dataset
+
+    demo = embedded_dataset()
+    cli = [python, "-m", "diamond_sss.cli.main"]
+    commands = {
+        "build": [python, "-c", BUILD],
+        "cuda-tests": [python, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider"],
+        "suite": [python, "-m", "pytest", "-q", "-p", "no:cacheprovider"],
+        "speed": [python, "benchmarks/speed.py", "--device", "cuda", "--output", str(out)],
+        "speed-raster": [python, "benchmarks/speed_raster.py", "--resolutions", "64", "--counts", "10000",
+                         "--output", str(out / "speed_raster.json")],
+        "train": cli + ["train", "--data", str(demo), "--out", str(run_dir), "--preset", "diamond",
+                        "--iterations", str(args.iterations), "--device", "cuda", "--quiet"],
+        "eval": cli + ["eval", "--run", str(run_dir), "--data", str(demo), "--split", "test", "--json",
+                       "--device", "cuda"],
+    }
+    report = {"machine": machine_facts(), "steps": []}
+    for name in STEPS:
+        if name in args.skip:
+            continue
+        result = run_step(name, commands[name], out, args.timeout, env)
+        if name in ("cuda-tests", "suite"):
+            result["summary"] = pytest_counts(result["tail"])
+        report["steps"].append(result)
+        atomic_json(out / "report.json", report)
+    speed = out / "speed.json"
+    if speed.is_file():
+        report["speed"] = json.loads(speed.read_text())
+    metrics = run_dir / "eval_test" / "metrics.json"
+    if metrics.is_file():
+        report["demo_metrics"] = json.loads(metrics.read_text())
+    summary = run_dir / "train_summary.json"
+    if summary.is_file():
+        train = json.loads(summary.read_text())
+        report["demo_training"] = {k: train[k] for k in ("steps", "seconds", "num_gaussians", "final_loss")}
+    atomic_json(out / "report.json", report)
+    (out / "report.md").write_text(markdown(report))
+    print(markdown(report))
+    failed = [s["step"] for s in report["steps"] if s["exit_code"] != 0]
+    if failed:
+        raise SystemExit(f"gpu-check: failed steps: {', '.join(failed)} (logs in {out})")
+
+
+def atomic_json(path: Path, value: dict) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(value, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def markdown(report: dict) -> str:
+    m = report["machine"]
+    machine = (f"{m.get('gpu')} ({m.get('gpu_memory_gib')} GiB, sm {m.get('compute_capability')}), driver "
+               f"{m.get('driver')}, CUDA {m['cuda_runtime']}, torch {m['torch']}, gsplat {m['gsplat']}, "
+               f"Python {m['python']}, {m['cpu_count']} CPU cores")
+    lines = [f"# GPU check, {m['date']}", "", machine, "",
+             "| step | exit | seconds | result |", "|---|---|---|---|"]
+    for step in report["steps"]:
+        result = step.get("summary") or (step["tail"][-1] if step["tail"] else "")
+        lines.append(f"| {step['step']} | {step['exit_code']} | {step['seconds']} | {result[:120]} |")
+    if "speed" in report:
+        lines += ["", "| device | Gaussians | px | multi-view | render fwd ms | render bwd ms | step ms | steps/s |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in report["speed"]["results"]:
+            lines.append(f"| {r['device']} | {r['gaussians']} | {r['resolution']} | {r['multiview']} "
+                         f"| {r['render_forward_ms']:.2f} | {r['render_backward_ms']:.2f} "
+                         f"| {r['train_step_ms']:.2f} | {r['steps_per_second']:.1f} |")
+    if "demo_training" in report:
+        t = report["demo_training"]
+        rate = t["steps"] / max(t["seconds"], 1e-9)
+        lines += ["", (f"Demo object, `diamond` preset: {t['steps']} steps in {t['seconds']:.0f} s "
+                       f"({rate:.1f} steps/s), {t['num_gaussians']} Gaussians")]
+    if "demo_metrics" in report:
+        scores = report["demo_metrics"].get("summary", report["demo_metrics"])
+        lines.append(f"Test split (novel views x novel lights): {json.dumps(scores)[:400]}")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
