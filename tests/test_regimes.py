@@ -25,8 +25,10 @@ def test_resolve_count():
     assert resolve_count("5%", 100, "views") == 5
     assert resolve_count("5%", 10, "views") == 1  # max(1, round(0.5)) with round-half-even -> 1
     assert resolve_count("3%", 112, "lights") == 3
-    assert resolve_count("7", 5, "views") == 5
+    assert resolve_count("5", 5, "views") == 5
     assert resolve_count("all", 9, "views") == 9
+    with pytest.raises(ValueError, match="'lights=7' asks for 7 lights; the capture has 5"):
+        resolve_count("7", 5, "lights")
     for bad in ("0", "-1", "x%", "150%", "abc"):
         with pytest.raises(ValueError, match="views"):
             resolve_count(bad, 10, "views")
@@ -63,6 +65,25 @@ def test_fps_spreads_better_than_random(lattice):
 def test_regime_counts(lattice, spec, views, lights, images):
     selection = select_regime(OLATDataset(lattice), spec, seed=1)
     assert (len(selection.views), len(selection.lights), len(selection.observations)) == (views, lights, images)
+
+
+def test_regime_larger_than_the_capture_is_an_error(lattice):
+    ds = OLATDataset(lattice)
+    with pytest.raises(ValueError, match="'views=500' asks for 500 views; the capture has 20"):
+        select_regime(ds, "views=500,lights=3")
+    with pytest.raises(ValueError, match="'lights=13' asks for 13 lights; the capture has 12"):
+        select_regime(ds, "views=3,lights=13")
+    with pytest.raises(ValueError, match="'images=241' asks for 241 images; the capture has 240"):
+        select_regime(ds, "images=241")
+    assert len(select_regime(ds, "views=20,lights=12").observations) == 240
+    assert len(select_regime(ds, "images=240").observations) == 240
+
+
+def test_cli_regime_larger_than_the_capture(lattice, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["regimes", "--data", str(lattice), "--regime", "views=21,lights=1"])
+    assert exit_info.value.code == 2
+    assert "asks for 21 views; the capture has 20" in capsys.readouterr().err
 
 
 def test_all_views_one_light_spreads_lights(lattice):

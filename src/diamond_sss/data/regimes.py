@@ -8,6 +8,8 @@ Spec strings:
                               ``all`` work on either side;
     ``images=10``             that many images, spread jointly over view and light directions.
 
+A count larger than what the capture has is an error naming both numbers, never a silent cap.
+
 Views and lights are picked by farthest-point sampling on their unit directions from the scene centre,
 started from a seeded random choice; only observations that exist are used.
 """
@@ -59,7 +61,10 @@ def farthest_point_order(directions: Tensor, count: int, generator: torch.Genera
 
 
 def resolve_count(value: str, total: int, key: str) -> int:
-    """``"5%"`` -> ``max(1, round(0.05 total))``; ``"7"`` -> 7 (at most ``total``); ``"all"`` -> ``total``."""
+    """``"5%"`` -> ``max(1, round(0.05 total))``; ``"7"`` -> 7; ``"all"`` -> ``total``.
+
+    A count above ``total`` raises ``ValueError`` naming both numbers ("views=500 asks for 500 views; the capture
+    has 40")."""
     value = value.strip()
     if value == "all":
         return total
@@ -73,7 +78,9 @@ def resolve_count(value: str, total: int, key: str) -> int:
         return max(1, round(fraction * total))
     if not value.isdigit() or int(value) < 1:
         raise ValueError(f"regime: '{key}={value}' must be a positive count, a percentage or 'all'")
-    return min(int(value), total)
+    if int(value) > total:
+        raise ValueError(f"regime: '{key}={value}' asks for {int(value)} {key}; the capture has {total}")
+    return int(value)
 
 
 def select_regime(dataset: OLATDataset, spec: str, seed: int = 0) -> RegimeSelection:
@@ -130,6 +137,8 @@ def _select_images(dataset: OLATDataset, spec: str, seed: int, count: int, view_
     """Farthest-point sampling over observations in the joint (view direction, light direction) space."""
     if count < 1:
         raise ValueError(f"regime '{spec}': images must be >= 1")
+    if count > len(dataset.observations):
+        raise ValueError(f"regime: '{spec}' asks for {count} images; the capture has {len(dataset.observations)}")
     views = torch.tensor([obs.view for obs in dataset.observations])
     lights = torch.tensor([obs.light for obs in dataset.observations])
     joint = torch.cat([view_dirs[views], light_dirs[lights]], dim=-1)
