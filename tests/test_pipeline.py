@@ -15,6 +15,7 @@ from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
 from diamond_sss.pipeline.run import PipelineConfig, move_aside_if_changed, run_pipeline, spread_subset
+from diamond_sss.training.run import train_run
 from diamond_sss.utils.io import sha256_json
 
 TRAIN = {"num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "iterations": 2, "raytrace_gaussians": 32,
@@ -65,7 +66,8 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
     # 2 novel views under the 1 real light, then 4 views (2 real + 2 generated) relit to 1 missing light
     assert manifest["stages"]["nvs"]["targets"] == 2
     assert manifest["stages"]["relight"]["images"] == 4
-    assert result["synthetic_images"] == 6 and result["real_images"] == 2
+    assert result["synthetic_images"] == 6 and result["real_images"] == 2 and result["real_share"] == 0.25
+    assert manifest["stages"]["final"]["real_share"] == 0.25
     assert {"psnr", "ssim", "mask_iou"} <= set(result)
     synthetic = OLATDataset(tmp_path / "synthetic", "train")
     assert len(synthetic) == 6 and synthetic.num_views == 6
@@ -73,6 +75,28 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
     assert again["psnr"] == result["psnr"]
     with pytest.raises(ValueError, match="other inputs"):
         run_pipeline(data, tmp_path, regime="views=3,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
+
+
+def test_prelim_reuses_a_finished_reconstruction(setup, tmp_path):
+    data, _, relight, cache = setup
+    base = tmp_path / "base"
+    train_run(data, base, regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
+    cfg = PipelineConfig(augment=("relight",), relight_lights=1, relight_model=str(relight), relight_steps=1,
+                         relight_samples=1, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache),
+                         prelim_run=str(base))
+    result = run_pipeline(data, tmp_path / "run", regime="views=2,lights=1", overrides=TRAIN, config=cfg,
+                          show_progress=False)
+    manifest = json.loads((tmp_path / "run" / "pipeline.json").read_text())
+    assert manifest["stages"]["prelim"]["reused"] == str(base)
+    assert not (tmp_path / "run" / "prelim").exists()
+    assert result["real_images"] == 2 and result["synthetic_images"] == 2 and result["real_share"] == 0.5
+    with pytest.raises(ValueError, match=r"base/regime.json lists other images"):
+        run_pipeline(data, tmp_path / "other", regime="views=3,lights=1", overrides=TRAIN, config=cfg,
+                     show_progress=False)
+    missing = PipelineConfig(augment=("relight",), relight_model=str(relight), prelim_run=str(tmp_path / "none"))
+    with pytest.raises(ValueError, match=r"none/model.safetensors is missing"):
+        run_pipeline(data, tmp_path / "third", regime="views=2,lights=1", overrides=TRAIN, config=missing,
+                     show_progress=False)
 
 
 def test_a_run_with_other_inputs_is_moved_aside_not_deleted(tmp_path):

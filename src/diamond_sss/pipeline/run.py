@@ -3,7 +3,8 @@
 Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
 
 1. ``prelim``   a reconstruction on the real images of the regime (geometry for conditioning, sanity checks),
-                ``prelim_iterations`` steps (default: the final reconstruction's);
+                ``prelim_iterations`` steps (default: the final reconstruction's), or ``prelim_run``, a finished
+                reconstruction of the same real images, reused without retraining;
 2. ``nvs``      novel views: for each real light, the lattice views the regime left out (the ``nvs_views``
                 farthest-point-spread ones when capped) generated from the nearest real view under that light;
 3. ``relight``  every real and generated view relit to the lattice lights it lacks (the ``relight_lights``
@@ -14,7 +15,8 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
 5. ``eval``     the test split (novel views under novel lights).
 
 Generated images whose mask is empty or far from the preliminary reconstruction's silhouette
-(IoU < ``min_silhouette_iou``) are dropped and counted.
+(IoU < ``min_silhouette_iou``) are dropped and counted. The result reports ``real_share``, the share of real
+images among the final reconstruction's training images.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ class PipelineConfig:
 
     augment: tuple[str, ...] = AUGMENTS
     prelim_iterations: int | None = None
+    prelim_run: str | None = None
     nvs_views: int = 12
     relight_lights: int = 8
     nvs_model: str | None = None
@@ -152,6 +155,24 @@ def _model_hash(stage: str, folder: str | Path) -> str:
     return files_hash(folder)
 
 
+def check_prelim_run(run: Path, data: Path, split: str, observations: list[int]) -> Path:
+    """``run`` when it is a finished reconstruction of exactly ``observations`` of ``data`` [``split``], else an
+    error naming the file that differs."""
+    run = Path(run)
+    model = run / "model.safetensors"
+    if not model.is_file():
+        raise ValueError(f"prelim_run {run}: no finished reconstruction ({model} is missing)")
+    recorded = read_manifest(run / "data.json")
+    if recorded.get("data") != str(Path(data).resolve()) or recorded.get("split") != split:
+        raise ValueError(f"prelim_run {run}: {run / 'data.json'} records data {recorded.get('data')!r} "
+                         f"[{recorded.get('split')}], expected {str(Path(data).resolve())!r} [{split}]")
+    used = read_manifest(run / "regime.json").get("observations")
+    if used != observations:
+        raise ValueError(f"prelim_run {run}: {run / 'regime.json'} lists other images ({used}) than the regime's "
+                         f"real images ({observations})")
+    return run
+
+
 def spread_subset(indices: list[int], directions: torch.Tensor, count: int, seed: int) -> list[int]:
     """At most ``count`` of ``indices``, spread by farthest-point sampling of their directions."""
     if count <= 0 or count >= len(indices):
@@ -203,6 +224,10 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
         "overrides": overrides, "pipeline": asdict(cfg) | {"augment": list(cfg.augment)},
         "model_hashes": model_hashes, "data_hash": sha256_file(real.json_path),
     }
+    prelim_dir = out / "prelim"
+    if cfg.prelim_run and cfg.augment:
+        prelim_dir = check_prelim_run(Path(cfg.prelim_run), data, split, selection.observations)
+        inputs["prelim_model_hash"] = sha256_file(prelim_dir / "model.safetensors")
     if move_changed_run and (moved := move_aside_if_changed(out, inputs)) is not None:
         print(f"{out}: the inputs changed (models, data or settings); the previous run was moved to {moved}")
         out.mkdir(parents=True, exist_ok=True)
@@ -222,9 +247,9 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
         manifest.record(StageRecord(name, time.perf_counter() - started, counts))
         return manifest.done(name)
 
-    prelim_dir = out / "prelim"
-
     def prelim_stage() -> dict:
+        if cfg.prelim_run:
+            return {"real_images": len(selection.observations), "reused": str(prelim_dir)}
         prelim_overrides = dict(overrides)
         if cfg.prelim_iterations is not None:
             prelim_overrides.update(iterations=cfg.prelim_iterations,
@@ -340,14 +365,13 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
         extra = [ImageSource(OLATDataset(out / "synthetic", "train", downscale=train_cfg.downscale),
                              train_cfg.synthetic_weight)]
     final_dir = out / "final"
-    stage("final", lambda: {"real_images": len(selection.observations), "synthetic_images": len(generated),
-                            "dropped": dict(dropped),
+    counts = {"real_images": len(selection.observations), "synthetic_images": len(generated), "dropped": dropped,
+              "real_share": round(len(selection.observations) / (len(selection.observations) + len(generated)), 4)}
+    stage("final", lambda: {**counts, "dropped": dict(dropped),
                             "steps": train_run(data, final_dir, split=split, regime=regime, preset=preset,
                                                overrides=overrides, show_progress=show_progress, resume=True,
                                                extra_sources=extra).steps})
     if not (Path(data) / "transforms_test.json").is_file():
-        return {"real_images": len(selection.observations), "synthetic_images": len(generated), "dropped": dropped,
-                "note": f"no transforms_test.json in {data}: evaluation skipped"}
+        return {**counts, "note": f"no transforms_test.json in {data}: evaluation skipped"}
     metrics = stage("eval", lambda: evaluate_run(final_dir, data, split="test", show_progress=show_progress))
-    return {**metrics, "real_images": len(selection.observations), "synthetic_images": len(generated),
-            "dropped": dropped}
+    return {**metrics, **counts}
