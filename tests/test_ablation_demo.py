@@ -44,9 +44,10 @@ def test_demo_writes_report(capture, tmp_path, capsys):
     main(["demo", "--data", str(capture), "--out", str(tmp_path), "--iterations", "2", "--augment", "none",
           "--regime", "views=2,lights=1", "--quiet"])
     report = (tmp_path / "report.md").read_text()
-    for method in ("| SSS-3DGS |", "| DIAMOND-SSS |", "| DIAMOND-SSS, all images |"):
+    for method in ("| SSS-3DGS (real images only) | 2 |", "| DIAMOND-SSS (full pipeline) | 2 |",
+                   "| dense reconstruction |"):
         assert method in report
     assert (tmp_path / "comparison.png").is_file()
     stages = json.loads((tmp_path / "diamond" / "pipeline.json").read_text())["stages"]
-    assert list(stages) == ["final", "eval"]
+    assert list(stages) == ["final", "eval"] and stages["final"]["real_share"] == 1.0
     assert "PSNR" in capsys.readouterr().out
