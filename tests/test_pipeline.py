@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 import torch
@@ -14,7 +15,13 @@ from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
-from diamond_sss.pipeline.run import PipelineConfig, move_aside_if_changed, run_pipeline, spread_subset
+from diamond_sss.pipeline.run import (
+    PipelineConfig,
+    move_aside_if_changed,
+    real_copies,
+    run_pipeline,
+    spread_subset,
+)
 from diamond_sss.training.run import train_run
 from diamond_sss.utils.io import sha256_json
 
@@ -45,6 +52,13 @@ def test_write_capture_keeps_the_lattice(setup, tmp_path):
     assert torch.allclose(generated.viewmats, real.viewmats, atol=1e-5)
     assert torch.allclose(generated.intrinsics, real.intrinsics, atol=1e-4)
     assert torch.equal(generated.load(0).rgb, real.load(4).rgb)
+
+
+def test_real_copies():
+    assert real_copies(9, 165, 0.0) == 0 and real_copies(9, 0, 0.5) == 0
+    assert real_copies(9, 165, 0.5) == 18  # 19 x 9 = 171 real entries >= 165 synthetic; 18 x 9 = 162 are not
+    assert real_copies(10, 10, 0.5) == 0 and real_copies(10, 30, 0.5) == 2
+    assert real_copies(10, 30, 0.25) == 0
 
 
 def test_spread_subset():
@@ -90,6 +104,12 @@ def test_prelim_reuses_a_finished_reconstruction(setup, tmp_path):
     assert manifest["stages"]["prelim"]["reused"] == str(base)
     assert not (tmp_path / "run" / "prelim").exists()
     assert result["real_images"] == 2 and result["synthetic_images"] == 2 and result["real_share"] == 0.5
+    assert result["real_draw_share"] == 0.5
+    shared = run_pipeline(data, tmp_path / "shared", regime="views=2,lights=1", overrides=TRAIN,
+                          config=replace(cfg, min_real_share=0.7), show_progress=False)
+    assert shared["real_share"] == 0.5 and shared["real_draw_share"] == 0.75  # the real images drawn 3x as often
+    with pytest.raises(ValueError, match="'min_real_share' must be in"):
+        run_pipeline(data, tmp_path / "bad", config=replace(cfg, min_real_share=1.0))
     with pytest.raises(ValueError, match=r"base/regime.json lists other images"):
         run_pipeline(data, tmp_path / "other", regime="views=3,lights=1", overrides=TRAIN, config=cfg,
                      show_progress=False)

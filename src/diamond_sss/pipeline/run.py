@@ -16,12 +16,14 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
 
 Generated images whose mask is empty or far from the preliminary reconstruction's silhouette
 (IoU < ``min_silhouette_iou``) are dropped and counted. The result reports ``real_share``, the share of real
-images among the final reconstruction's training images.
+images among the final reconstruction's training images; with ``min_real_share`` the real images are repeated in
+the training index until they make up at least that share of the images drawn (``real_draw_share``).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -59,6 +61,7 @@ class PipelineConfig:
     nvs_guidance: float = 1.0
     min_silhouette_iou: float = 0.5
     min_mask_fraction: float = 0.002
+    min_real_share: float = 0.0
     cache_dir: str | None = None
     device: str = "cpu"
 
@@ -173,6 +176,14 @@ def check_prelim_run(run: Path, data: Path, split: str, observations: list[int])
     return run
 
 
+def real_copies(real: int, synthetic: int, share: float) -> int:
+    """Extra copies of ``real`` images, next to ``synthetic`` ones, for the real ones to make up >= ``share``
+    (in [0, 1)) of the training index: the least k >= 0 with ``(1 + k) real / ((1 + k) real + synthetic) >= share``."""
+    if share <= 0.0 or synthetic == 0:
+        return 0
+    return max(0, math.ceil(share * synthetic / ((1.0 - share) * real) - 1.0 - 1e-9))
+
+
 def spread_subset(indices: list[int], directions: torch.Tensor, count: int, seed: int) -> list[int]:
     """At most ``count`` of ``indices``, spread by farthest-point sampling of their directions."""
     if count <= 0 or count >= len(indices):
@@ -204,6 +215,8 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     unknown = set(cfg.augment) - set(AUGMENTS)
     if unknown:
         raise ValueError(f"--augment: unknown stage(s) {sorted(unknown)}; use none or a subset of {AUGMENTS}")
+    if not 0.0 <= cfg.min_real_share < 1.0:
+        raise ValueError(f"pipeline config 'min_real_share' must be in [0, 1), got {cfg.min_real_share}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     overrides = {**(overrides or {}), "seed": seed}
@@ -360,13 +373,17 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
                 generated.append(item)
 
     extra = []
+    num_real = len(selection.observations)
+    copies = real_copies(num_real, len(generated), cfg.min_real_share)
     if generated:
         write_capture(out / "synthetic", "train", real, generated)
-        extra = [ImageSource(OLATDataset(out / "synthetic", "train", downscale=train_cfg.downscale),
-                             train_cfg.synthetic_weight)]
+        extra = [ImageSource(real.subset(selection.observations), 1.0)] * copies + [
+            ImageSource(OLATDataset(out / "synthetic", "train", downscale=train_cfg.downscale),
+                        train_cfg.synthetic_weight)]
     final_dir = out / "final"
-    counts = {"real_images": len(selection.observations), "synthetic_images": len(generated), "dropped": dropped,
-              "real_share": round(len(selection.observations) / (len(selection.observations) + len(generated)), 4)}
+    counts = {"real_images": num_real, "synthetic_images": len(generated), "dropped": dropped,
+              "real_share": round(num_real / (num_real + len(generated)), 4),
+              "real_draw_share": round((1 + copies) * num_real / ((1 + copies) * num_real + len(generated)), 4)}
     stage("final", lambda: {**counts, "dropped": dict(dropped),
                             "steps": train_run(data, final_dir, split=split, regime=regime, preset=preset,
                                                overrides=overrides, show_progress=show_progress, resume=True,
