@@ -90,7 +90,7 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
     scenes = [load_scene(run_dir)[0] for _, run_dir, _, _ in rows]
     grid = [[to_display(test.load(i).rgb)] + [to_display(render_observation(s, test, i, "cpu").radiance[0])
                                              for s in scenes] for i in picks]
-    figure = save_image_grid(out / "comparison.png", grid, col_labels=["ground truth", *[r[0] for r in rows]],
+    figure = save_image_grid(out / "comparison.png", grid, col_labels=["ground truth", *[r[0].split(" (")[0] for r in rows]],
                              row_labels=[f"view {test.observations[i].view}, light {test.observations[i].light}"
                                          for i in picks], title=f"{root.name}, regime {regime}")
     lines += ["", f"![comparison]({figure.name})", ""]
