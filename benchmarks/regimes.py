@@ -66,9 +66,10 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     overrides = short_schedule(iterations)
     if method in ("sss3dgs", "+mv", "dense"):
         run = runs / method
-        train_run(data, run, regime="all" if method == "dense" else regime,
-                  preset="sss3dgs" if method == "sss3dgs" else "diamond", overrides=overrides, resume=True,
-                  show_progress=False)
+        if not (run / "model.safetensors").is_file():  # a finished run is not resumed (that retrains its last part)
+            train_run(data, run, regime="all" if method == "dense" else regime,
+                      preset="sss3dgs" if method == "sss3dgs" else "diamond", overrides=overrides, resume=True,
+                      show_progress=False)
         metrics = evaluate_run(run, data, figures=0, show_progress=False)
         real = len(json.loads((run / "regime.json").read_text())["observations"])
         return run, {**metrics, "real_images": real, "synthetic_images": 0, "real_share": 1.0}
