@@ -14,7 +14,8 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         augment: str = "auto", iterations: int | None = None, set_: SetArg = [],  # noqa: B006
         nvs_views: int = 12, relight_lights: int = 8, nvs_model: str | None = None,
         relight_model: str | None = None, nvs_steps: int = 1, relight_steps: int = 1,
-        relight_samples: int = 8, cache_dir: str | None = None, prelim_run: Path | None = None, seed: int = 0,
+        relight_samples: int = 8, cache_dir: str | None = None, prelim_run: Path | None = None,
+        min_real_share: float = 0.0, seed: int = 0,
         device: str = "cpu", json: bool = False, quiet: bool = False) -> None:
     """Diffusion-augmented sparse reconstruction (supplement Sec. C.4): prelim -> nvs -> relight -> final -> eval.
 
@@ -39,6 +40,8 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         cache_dir: cache of generated images (default: ~/.cache/diamond_sss or $DIAMOND_SSS_CACHE).
         prelim_run: a finished reconstruction of the same real images (a `train` run folder with this --regime
             and --seed) used as the preliminary one instead of training it.
+        min_real_share: the real images are repeated in the final reconstruction's training set until they make
+            up at least this share of the images drawn (0: each image once; 0.5 helped at 9 images).
         seed: seed of the regime, reconstructions and diffusion noise.
         device: cpu | cuda for the diffusion models (reconstructions use --set device=...).
         json: print the final metrics as JSON.
@@ -54,7 +57,8 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
     cfg = PipelineConfig(augment=stages, nvs_views=nvs_views, relight_lights=relight_lights, nvs_model=nvs_model,
                          relight_model=relight_model, nvs_steps=nvs_steps, relight_steps=relight_steps,
                          relight_samples=relight_samples, cache_dir=cache_dir,
-                         prelim_run=str(prelim_run) if prelim_run else None, device=device)
+                         prelim_run=str(prelim_run) if prelim_run else None, min_real_share=min_real_share,
+                         device=device)
     result = run_pipeline(data, out, split=split, regime=regime, preset=preset, overrides=overrides, seed=seed,
                           config=cfg, show_progress=not quiet)
     if json:
