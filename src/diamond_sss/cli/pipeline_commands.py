@@ -15,7 +15,7 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         nvs_views: int = 12, relight_lights: int = 8, nvs_model: str | None = None,
         relight_model: str | None = None, nvs_steps: int = 1, relight_steps: int = 1,
         relight_samples: int = 8, cache_dir: str | None = None, prelim_run: Path | None = None,
-        min_real_share: float = 0.0, seed: int = 0,
+        min_real_share: float = 0.5, seed: int = 0,
         device: str = "cpu", json: bool = False, quiet: bool = False) -> None:
     """Diffusion-augmented sparse reconstruction (supplement Sec. C.4): prelim -> nvs -> relight -> final -> eval.
 
@@ -41,7 +41,7 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         prelim_run: a finished reconstruction of the same real images (a `train` run folder with this --regime
             and --seed) used as the preliminary one instead of training it.
         min_real_share: the real images are repeated in the final reconstruction's training set until they make
-            up at least this share of the images drawn (0: each image once; 0.5 helped at 9 images).
+            up at least this share of the images drawn (0: each image once, as the paper).
         seed: seed of the regime, reconstructions and diffusion noise.
         device: cpu | cuda for the diffusion models (reconstructions use --set device=...).
         json: print the final metrics as JSON.

@@ -61,7 +61,7 @@ class PipelineConfig:
     nvs_guidance: float = 1.0
     min_silhouette_iou: float = 0.5
     min_mask_fraction: float = 0.002
-    min_real_share: float = 0.0
+    min_real_share: float = 0.5
     cache_dir: str | None = None
     device: str = "cpu"
 
