@@ -4,16 +4,19 @@ Regimes: `views=3,lights=3` (9 images, the paper's 3% x 3%) and `views=5,lights=
 the dense reference (`dense`: the `diamond` preset on every image). Rows per object, regime and stage:
 `sss3dgs` (real images only); `+mv` (the `diamond` preset: + multi-view losses); `+relight` (+ relighting
 diffusion); `full` (+ novel-view diffusion: the full pipeline), plus the mean over objects. The pipeline rows
-reuse the `sss3dgs` run as their preliminary reconstruction. Every method trains for the same steps.
+reuse the `sss3dgs` run as their preliminary reconstruction and run once per --real-shares value (the pipeline's
+`min_real_share`; rows and folders of a value other than the default 0.5 are named e.g. `full_share0`). Every
+method trains for the same steps.
 Objects: data folders or `shape:material` pairs never used for fine-tuning the diffusion models (those are
 torus/jade, bust/marble, blob/soap, sphere/skin), rendered once with `diamond-sss synth` into
 outputs/benchmarks/objects. Metrics on the test split (novel views under novel lights).
 
-    python benchmarks/regimes.py --iterations 1000 --objects src/diamond_sss/assets/data/demo torus:soap blob:marble
+    python benchmarks/regimes.py --iterations 1000 --objects src/diamond_sss/assets/data/demo torus:soap blob:marble \
+        --real-shares 0.5 0
 
 Runs go to --out (resumable: a second call with the same arguments only collects); regimes.json, regimes.md and
 regimes_grid.png go to --results. The targets: at 9 images `full` beats `sss3dgs` by >= 2 dB PSNR and in mask
-IoU; at 30 images `full` is within 2 dB of `dense`.
+IoU; at 30 images `full` is within 2 dB of `dense` (checked for every `full` variant).
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ LABELS = {"sss3dgs": "sss3dgs (real images only)", "+mv": "+ multi-view losses",
           "full": "+ novel views (full pipeline)", "dense": "dense reconstruction (all images)"}
 DEFAULT_OBJECTS = ("src/diamond_sss/assets/data/demo", "torus:soap", "blob:marble")
 METRICS = ("psnr", "ssim", "mask_iou")
+DEFAULT_SHARE = PipelineConfig().min_real_share
 
 
 def resolve_object(spec: str, size: int, spp: int) -> Path:
@@ -59,9 +63,16 @@ def resolve_object(spec: str, size: int, spp: int) -> Path:
     return folder
 
 
-def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int, tag: str = "",
-               min_real_share: float = 0.0) -> tuple[Path, dict]:
-    """Train and evaluate one method in ``runs/<method><tag>``; returns its final run folder and test metrics
+def variant_name(method: str, real_share: float) -> str:
+    """``full`` at the pipeline's default real share, ``full_share0`` at 0, and so on; other methods as they are."""
+    if method in ("sss3dgs", "+mv", "dense") or real_share == DEFAULT_SHARE:
+        return method
+    return f"{method}_share{round(100 * real_share)}"
+
+
+def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int,
+               real_share: float = DEFAULT_SHARE) -> tuple[Path, dict]:
+    """Train and evaluate one method in ``runs/<variant_name>``; returns its final run folder and test metrics
     (+ image counts). The pipeline methods reuse ``runs/sss3dgs`` as their preliminary reconstruction."""
     overrides = short_schedule(iterations)
     if method in ("sss3dgs", "+mv", "dense"):
@@ -77,10 +88,11 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     if not (prelim / "model.safetensors").is_file():
         run_method("sss3dgs", data, runs, regime, iterations)
     augment = ("relight",) if method == "+relight" else ("nvs", "relight")
-    config = PipelineConfig(augment=augment, prelim_run=str(prelim), min_real_share=min_real_share)
-    metrics = run_pipeline(data, runs / f"{method}{tag}", regime=regime, preset="diamond", overrides=overrides,
-                           config=config, show_progress=False)
-    return runs / f"{method}{tag}" / "final", metrics
+    config = PipelineConfig(augment=augment, prelim_run=str(prelim), min_real_share=real_share)
+    folder = runs / variant_name(method, real_share)
+    metrics = run_pipeline(data, folder, regime=regime, preset="diamond", overrides=overrides, config=config,
+                           show_progress=False)
+    return folder / "final", metrics
 
 
 def mean_rows(rows: list[dict]) -> list[dict]:
@@ -93,36 +105,39 @@ def mean_rows(rows: list[dict]) -> list[dict]:
             for (regime, method), group in groups.items()]
 
 
-def target_lines(rows: list[dict], tag: str) -> list[str]:
-    """The issue's two targets per object and for the mean, as Markdown bullet lines."""
+def target_lines(rows: list[dict]) -> list[str]:
+    """The issue's two targets per object and for the mean, for every ``full`` variant, as Markdown bullets."""
     score = {(r["object"], r["regime"], r["method"]): r for r in rows}
     lines = []
-    for name in dict.fromkeys(r["object"] for r in rows):
-        full, base = score.get((name, NINE, f"full{tag}")), score.get((name, NINE, "sss3dgs"))
-        if full and base:
-            gain, iou = full["psnr"] - base["psnr"], full["mask_iou"] - base["mask_iou"]
-            met = gain >= 2.0 and iou > 0
-            lines.append(f"- {name}, 9 images: full - sss3dgs = {gain:+.2f} dB, mask IoU {iou:+.3f} "
-                         f"(target >= +2 dB and > 0: {'met' if met else 'not met'})")
-        full, dense = score.get((name, THIRTY, f"full{tag}")), score.get((name, "all", "dense"))
-        if full and dense:
-            gap = full["psnr"] - dense["psnr"]
-            lines.append(f"- {name}, 30 images: full - dense = {gap:+.2f} dB (target >= -2 dB: "
-                         f"{'met' if gap >= -2.0 else 'not met'})")
+    for full_name in dict.fromkeys(r["method"] for r in rows if r["method"].startswith("full")):
+        for name in dict.fromkeys(r["object"] for r in rows):
+            full, base = score.get((name, NINE, full_name)), score.get((name, NINE, "sss3dgs"))
+            if full and base:
+                gain, iou = full["psnr"] - base["psnr"], full["mask_iou"] - base["mask_iou"]
+                met = gain >= 2.0 and iou > 0
+                lines.append(f"- {name}, 9 images: {full_name} - sss3dgs = {gain:+.2f} dB, mask IoU {iou:+.3f} "
+                             f"(target >= +2 dB and > 0: {'met' if met else 'not met'})")
+            full, dense = score.get((name, THIRTY, full_name)), score.get((name, "all", "dense"))
+            if full and dense:
+                gap = full["psnr"] - dense["psnr"]
+                lines.append(f"- {name}, 30 images: {full_name} - dense = {gap:+.2f} dB (target >= -2 dB: "
+                             f"{'met' if gap >= -2.0 else 'not met'})")
     return lines
 
 
-def markdown(rows: list[dict], iterations: int, tag: str) -> str:
-    lines = [f"{iterations} steps per reconstruction (`short_schedule`), test split (novel views under novel lights).",
-             "", "| object | regime | stage | PSNR | SSIM | mask IoU | real / synthetic images |",
+def markdown(rows: list[dict], iterations: int, note: str) -> str:
+    lines = [f"{iterations} steps per reconstruction (`short_schedule`), test split (novel views under novel lights). "
+             f"Pipeline rows: real images at least {DEFAULT_SHARE:.0%} of the images drawn unless named `_shareN` "
+             f"(N%). {note}".strip(), "",
+             "| object | regime | stage | PSNR | SSIM | mask IoU | real / synthetic images |",
              "|---|---|---|---|---|---|---|"]
     for r in [*rows, *mean_rows(rows)]:
-        method = r["method"]
-        label = LABELS.get(method, LABELS.get(method.removesuffix(tag), method) + (f" [{tag}]" if tag else ""))
+        method, _, share = r["method"].partition("_share")
+        label = LABELS[method] + (f" [min_real_share {int(share) / 100:g}]" if share else "")
         images = f"{r.get('real_images', '')} / {r['synthetic_images']:.0f}"
         lines.append(f"| {r['object']} | `{r['regime']}` | {label} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
                      f"{r['mask_iou']:.3f} | {images} |")
-    return "\n".join([*lines, "", "Targets:", *target_lines(rows, tag)]) + "\n"
+    return "\n".join([*lines, "", "Targets:", *target_lines(rows)]) + "\n"
 
 
 def main() -> None:
@@ -135,42 +150,40 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=1000)
     parser.add_argument("--size", type=int, default=64)
     parser.add_argument("--spp", type=int, default=64)
-    parser.add_argument("--min-real-share", type=float, default=0.0,
-                        help="lever: the pipeline's real images make up at least this share of the images drawn")
-    parser.add_argument("--tag", default="", help="suffix of the pipeline rows' names, run folders and result "
-                                                  "files (a lever's variant), e.g. _share50")
+    parser.add_argument("--real-shares", nargs="+", type=float, default=[DEFAULT_SHARE],
+                        help="the pipeline rows' min_real_share values (a lever): real images at least this share "
+                             "of the images drawn")
+    parser.add_argument("--note", default="", help="a line for the Markdown (machine, date)")
     parser.add_argument("--out", type=Path, default=RUNS)
     parser.add_argument("--results", type=Path, default=RESULTS)
     args = parser.parse_args()
-    if args.min_real_share and not args.tag:
-        parser.error("--min-real-share needs a --tag (its runs must not replace the plain pipeline's)")
     rows, finals = [], {}
     for spec in args.objects:
         data = resolve_object(spec, args.size, args.spp)
-        jobs = [(regime, method) for regime in args.regimes for method in args.methods]
-        jobs += [] if args.no_dense else [("all", "dense")]
-        for regime, method in jobs:
-            tagged = method if method in ("sss3dgs", "+mv", "dense") else f"{method}{args.tag}"
+        jobs = [(regime, method, share) for regime in args.regimes for method in args.methods
+                for share in (args.real_shares if method in ("+relight", "full") else [DEFAULT_SHARE])]
+        jobs += [] if args.no_dense else [("all", "dense", DEFAULT_SHARE)]
+        for regime, method, share in jobs:
+            name = variant_name(method, share)
             runs = args.out / data.name / regime_slug(regime)
             started = time.perf_counter()
-            final, metrics = run_method(method, data, runs, regime, args.iterations, args.tag, args.min_real_share)
-            finals[data.name, regime, tagged] = final
-            rows.append({"object": data.name, "regime": regime, "method": tagged,
+            final, metrics = run_method(method, data, runs, regime, args.iterations, share)
+            finals[data.name, regime, name] = final
+            rows.append({"object": data.name, "regime": regime, "method": name,
                          "minutes": (time.perf_counter() - started) / 60,
                          **{k: metrics.get(k) for k in (*METRICS, "real_images", "synthetic_images", "real_share")}})
             print(json.dumps(rows[-1]), flush=True)
     args.results.mkdir(parents=True, exist_ok=True)
-    name = f"regimes{args.tag}"
-    (args.results / f"{name}.json").write_text(json.dumps({"iterations": args.iterations, "rows": rows,
-                                                            "mean": mean_rows(rows)}, indent=2) + "\n")
-    text = markdown(rows, args.iterations, args.tag)
-    (args.results / f"{name}.md").write_text(text)
+    (args.results / "regimes.json").write_text(json.dumps({"iterations": args.iterations, "note": args.note,
+                                                           "rows": rows, "mean": mean_rows(rows)}, indent=2) + "\n")
+    text = markdown(rows, args.iterations, args.note)
+    (args.results / "regimes.md").write_text(text)
     first = resolve_object(args.objects[0], args.size, args.spp)
     test = OLATDataset(first, "test")
     columns = [key for key in finals if key[0] == first.name]
     grid = [[to_display(test.load(0).rgb)] + [to_display(render_observation(load_scene(finals[key])[0], test, 0,
                                                                             "cpu").radiance[0]) for key in columns]]
-    save_image_grid(args.results / f"{name}_grid.png", grid, col_labels=["ground truth", *[
+    save_image_grid(args.results / "regimes_grid.png", grid, col_labels=["ground truth", *[
         f"{'9' if k[1] == NINE else '30' if k[1] == THIRTY else 'all'}: {k[2]}" for k in columns]],
         title=f"{first.name}: test view 0, test light 0")
     print(text)
