@@ -95,6 +95,14 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     return folder / "final", metrics
 
 
+def finished(run: Path) -> bool:
+    """Whether ``run`` (a training run or a pipeline folder) holds a finished, evaluated reconstruction."""
+    if (run / "model.safetensors").is_file():
+        return True
+    manifest = run / "pipeline.json"
+    return manifest.is_file() and "eval" in json.loads(manifest.read_text()).get("stages", {})
+
+
 def mean_rows(rows: list[dict]) -> list[dict]:
     """One row per (regime, method): the mean of each metric over the objects."""
     groups: dict[tuple[str, str], list[dict]] = {}
@@ -154,6 +162,7 @@ def main() -> None:
                         help="the pipeline rows' min_real_share values (a lever): real images at least this share "
                              "of the images drawn")
     parser.add_argument("--note", default="", help="a line for the Markdown (machine, date)")
+    parser.add_argument("--collect-only", action="store_true", help="report the finished runs, train nothing")
     parser.add_argument("--out", type=Path, default=RUNS)
     parser.add_argument("--results", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -166,6 +175,8 @@ def main() -> None:
         for regime, method, share in jobs:
             name = variant_name(method, share)
             runs = args.out / data.name / regime_slug(regime)
+            if args.collect_only and not finished(runs / name):
+                continue
             started = time.perf_counter()
             final, metrics = run_method(method, data, runs, regime, args.iterations, share)
             finals[data.name, regime, name] = final
