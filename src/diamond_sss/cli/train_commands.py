@@ -133,13 +133,13 @@ def export(run: Path, ply: Path) -> None:
     Console().print(f"{scene.gaussians.num_gaussians} Gaussians -> {ply}")
 
 
-def view(run: Path, port: int = 8080, host: str = "0.0.0.0", resolution: int = 256, device: str = "auto") -> None:
+def view(run: Path, port: int = 8080, host: str = "127.0.0.1", resolution: int = 256, device: str = "auto") -> None:
     """Open a trained scene in the web viewer (viser): orbit it, move the light, show maps, edit materials.
 
     Args:
         run: training run folder.
-        port: port of the web server (open http://localhost:PORT in a browser).
-        host: interface to listen on.
+        port: port of the web server (open the printed URL in a browser).
+        host: interface to listen on (default loopback only; 0.0.0.0 exposes the viewer to the network).
         resolution: initial image height of the rendered frames (pixels; a slider changes it).
         device: auto | cpu | cuda.
     """
