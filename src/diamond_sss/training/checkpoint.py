@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
+from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, default_mode, load_safetensors
 
 KEEP_CHECKPOINTS = 2
 
@@ -76,6 +76,7 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
     root.mkdir(parents=True, exist_ok=True)
     name = f"step_{step:07d}"
     tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=root))
+    os.chmod(tmp, default_mode(directory=True))
     try:
         atomic_save_safetensors(tmp / "scene.safetensors", scene_tensors)
         optim_tensors: dict[str, Tensor] = {}

@@ -14,10 +14,18 @@ import torch
 from safetensors.torch import load_file, save_file
 
 
+def default_mode(directory: bool = False) -> int:
+    """The mode a plain ``open(path, "w")`` (``0o666``) or ``mkdir`` (``0o777``) gives, less the umask."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return (0o777 if directory else 0o666) & ~umask
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path:
     """Call ``write(tmp_path)`` on a temporary file beside ``path``, then ``os.replace`` it into place.
 
-    A crash leaves either the old file or the new one, never half of it. Parent folders are created.
+    A crash leaves either the old file or the new one, never half of it. Parent folders are created. The
+    file gets the mode a plain write would give it (not ``mkstemp``'s 0600).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -26,6 +34,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path
     tmp_path = Path(tmp)
     try:
         write(tmp_path)
+        os.chmod(tmp_path, default_mode())
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
