@@ -301,10 +301,15 @@ class OLATDataset:
             "width": self.width,
             "height": self.height,
             "downscale": self.downscale,
-            "bounds": {"center": [round(float(x), 6) for x in bounds.center], "radius": round(bounds.radius, 6),
-                       "near": round(bounds.near, 6), "far": round(bounds.far, 6)},
+            "bounds": {"center": [_rounded(x) for x in bounds.center], "radius": _rounded(bounds.radius),
+                       "near": _rounded(bounds.near), "far": _rounded(bounds.far)},
             "geometry_maps": sum(self.has_geometry_maps(v) for v in range(self.num_views)),
         }
+
+
+def _rounded(value) -> float:
+    """``value`` to 6 decimals, with no negative zero."""
+    return round(float(value), 6) + 0.0
 
 
 _CACHED_PROPERTIES = {"presence"}
