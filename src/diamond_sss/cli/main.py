@@ -12,7 +12,7 @@ from diamond_sss.cli.demo import demo
 from diamond_sss.cli.nvs_commands import finetune_nvs, nvs
 from diamond_sss.cli.pipeline_commands import run
 from diamond_sss.cli.relight_commands import finetune_relight, relight
-from diamond_sss.cli.train_commands import ablate, evaluate, export, render, train, view
+from diamond_sss.cli.train_commands import ablate, config, evaluate, export, render, train, view
 from diamond_sss.cli.tune_commands import tune
 from diamond_sss.data.errors import DataError
 
@@ -21,7 +21,7 @@ def commands() -> dict[str, Callable[..., None]]:
     """The subcommands, by name."""
     from diamond_sss.synth.cli import synth
 
-    return {"demo": demo, "info": info, "regimes": regimes, "synth": synth, "train": train, "eval": evaluate,
+    return {"demo": demo, "info": info, "regimes": regimes, "synth": synth, "config": config, "train": train, "eval": evaluate,
             "render": render, "export": export, "view": view, "ablate": ablate, "run": run, "tune": tune,
             "finetune-relight": finetune_relight, "relight": relight, "finetune-nvs": finetune_nvs, "nvs": nvs}
 

@@ -12,7 +12,8 @@ from rich.console import Console
 from rich.table import Table
 
 SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
-                  tyro.conf.arg(name="set", help="override a config key: --set key=value (repeatable)")]
+                  tyro.conf.arg(name="set", help="override a config key: --set key=value (every key, its "
+                                                 "default and meaning: diamond-sss config)")]
 
 
 def train(data: Path, out: Path, split: str = "train", regime: str = "all", preset: str = "diamond",
@@ -42,6 +43,27 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
                        config_file=config, sets=set_, resume=resume, show_progress=not quiet)
     Console().print(f"trained {result.steps} steps in {result.seconds:.1f} s, {result.num_gaussians} Gaussians, "
                     f"final loss {result.final_loss:.4f} -> {out / 'model.safetensors'}")
+
+
+def config(preset: str = "diamond", json: bool = False) -> None:
+    """List every config key (for --set and --config) with its value under --preset and its meaning.
+
+    Args:
+        preset: hyperparameter preset whose values to show: diamond or sss3dgs.
+        json: print a JSON object of key -> value instead of a table.
+    """
+    from diamond_sss.training.config import describe_config
+
+    rows = describe_config(preset)
+    if json:
+        print(json_module.dumps({key: value for key, value, _ in rows}, indent=2))
+        return
+    table = Table(title=f"config keys, preset '{preset}' (change with --set key=value)")
+    for column in ("key", "value", "meaning"):
+        table.add_column(column)
+    for key, value, meaning in rows:
+        table.add_row(key, str(value), meaning)
+    Console(soft_wrap=True).print(table)
 
 
 def evaluate(run: Path, data: Path, split: str = "test", json: bool = False, lpips_weights: str | None = None,
