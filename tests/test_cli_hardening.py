@@ -4,13 +4,20 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 from dataclasses import fields
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from diamond_sss.cli.data_commands import format_bounds
 from diamond_sss.cli.main import main
+from diamond_sss.data.analytic import make_capture
 from diamond_sss.data.embedded import embedded_dataset
+from diamond_sss.data.images import write_png
 from diamond_sss.training.config import TrainConfig, describe_config, make_config, parse_sets
 
 
@@ -68,3 +75,25 @@ def test_set_help_says_repeatable_once_and_where_the_keys_are(capsys):
         main(["train", "--help"])
     text = " ".join(capsys.readouterr().out.replace("│", " ").split())
     assert text.count("(repeatable)") == 1 and "diamond-sss config" in text
+
+
+def test_lpips_and_empty_mask_warnings_are_one_line_each_once(tmp_path):
+    make_capture(tmp_path, views=2, lights=1, size=8)
+    write_png(tmp_path / "train/v000_l000.png", np.zeros((8, 8, 4), np.uint8))
+    write_png(tmp_path / "train/v001_l000.png", np.zeros((8, 8, 4), np.uint8))
+    script = (
+        "from diamond_sss.cli.main import configure_logging\n"
+        "from diamond_sss.data import OLATDataset\n"
+        "from diamond_sss.losses.lpips import load_lpips\n"
+        "configure_logging()\n"
+        "load_lpips(None); load_lpips(None)\n"
+        f"ds = OLATDataset({str(tmp_path)!r})\n"
+        "[ds.load(i) for i in range(len(ds))]\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")}
+    env.pop("DIAMOND_SSS_LPIPS_WEIGHTS", None)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
+    lines = result.stderr.splitlines()
+    assert len(lines) == 2, result.stderr
+    assert lines[0] == "WARNING: LPIPS is disabled: no weights file given and $DIAMOND_SSS_LPIPS_WEIGHTS is not set"
+    assert lines[1].startswith("WARNING: ") and "v000_l000.png: the mask is empty (frame 0 of" in lines[1]

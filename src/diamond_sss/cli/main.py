@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import sys
 from collections.abc import Callable
 
@@ -26,8 +27,14 @@ def commands() -> dict[str, Callable[..., None]]:
             "finetune-relight": finetune_relight, "relight": relight, "finetune-nvs": finetune_nvs, "nvs": nvs}
 
 
+def configure_logging() -> None:
+    """Warnings and errors as one ``LEVEL: message`` line each on stderr (no-op if logging is configured)."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s: %(message)s")
+
+
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``diamond-sss`` console script."""
+    configure_logging()
     try:
         tyro.extras.subcommand_cli_from_dict(commands(), args=argv, prog="diamond-sss")
     except (DataError, FileNotFoundError, ValueError, FloatingPointError) as exc:

@@ -7,7 +7,7 @@ are comparable with training ones. Images load lazily into a bounded cache.
 
 from __future__ import annotations
 
-import warnings
+import logging
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -35,6 +35,9 @@ from diamond_sss.data.transforms import (
     parse_transforms,
     transforms_path,
 )
+from diamond_sss.utils.logs import warn_once
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -97,7 +100,6 @@ class SceneBounds:
 class _ImageCache:
     capacity: int
     entries: OrderedDict = field(default_factory=OrderedDict)
-    warned_empty: set = field(default_factory=set)
 
     def get(self, key: int) -> tuple[Tensor, Tensor] | None:
         if key in self.entries:
@@ -222,10 +224,9 @@ class OLATDataset:
             camera = self.cameras[obs.view]
             rgb = resize_area(rgb, camera.height, camera.width)
             mask = resize_area(mask, camera.height, camera.width)
-            if float(mask.max()) < 0.5 / 255.0 and index not in self._cache.warned_empty:
-                self._cache.warned_empty.add(index)
-                warnings.warn(f"{obs.image_path}: the mask is empty (frame {obs.frame} of {self.json_path})",
-                              stacklevel=2)
+            if float(mask.max()) < 0.5 / 255.0:
+                warn_once(logger, "empty-mask", "%s: the mask is empty (frame %d of %s); further empty masks "
+                          "are logged at debug level only", obs.image_path, obs.frame, self.json_path)
             cached = (rgb, mask)
             self._cache.put(index, cached)
         rgb, mask = cached
@@ -432,8 +433,8 @@ def _observations(json_path: Path, records: list[ImageRecord], view_of_record: l
             raise data_error(json_path, f"image {record.image_path} is {file_w}x{file_h} but view {view} is "
                              f"{reference[0]}x{reference[1]}", frame=record.frame, key="w/h")
         if (view, light) in seen:
-            warnings.warn(f"{json_path}: frame {record.frame}: {record.image_path} repeats view {view} under light "
-                          f"{light} (already {seen[(view, light)]}); keeping the first", stacklevel=3)
+            logger.warning("%s: frame %d: %s repeats view %d under light %d (already %s); keeping the first",
+                           json_path, record.frame, record.image_path, view, light, seen[(view, light)])
             continue
         seen[(view, light)] = record.image_path
         observations.append(Observation(view=view, light=light, image_path=record.image_path,
