@@ -15,7 +15,7 @@ from diamond_sss.cli.pipeline_commands import run
 from diamond_sss.cli.relight_commands import finetune_relight, relight
 from diamond_sss.cli.train_commands import ablate, config, evaluate, export, render, train, view
 from diamond_sss.cli.tune_commands import tune
-from diamond_sss.data.errors import DataError
+from diamond_sss.errors import DataError
 
 
 def commands() -> dict[str, Callable[..., None]]:

@@ -26,7 +26,6 @@ from diamond_sss.data.conventions import (
     opengl_c2w_to_opencv_w2c,
     scale_intrinsics,
 )
-from diamond_sss.data.errors import DataError, data_error
 from diamond_sss.data.images import composite_background, load_rgba, resize_area
 from diamond_sss.data.transforms import (
     DeclaredCamera,
@@ -35,6 +34,7 @@ from diamond_sss.data.transforms import (
     parse_transforms,
     transforms_path,
 )
+from diamond_sss.errors import DataError, data_error
 from diamond_sss.utils.logs import warn_once
 
 logger = logging.getLogger(__name__)

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from diamond_sss.data.errors import DataError, data_error
 from diamond_sss.data.images import read_header
+from diamond_sss.errors import DataError, data_error
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 

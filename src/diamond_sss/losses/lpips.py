@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from diamond_sss.utils.io import load_safetensors
 from diamond_sss.utils.logs import warn_once
 
 logger = logging.getLogger(__name__)
@@ -159,9 +160,7 @@ def convert_lpips_state_dict(
 
 
 def _read_weights(path: Path) -> dict[str, Tensor]:
-    from safetensors.torch import load_file
-
-    state = load_file(str(path))
+    state = load_safetensors(path)
     shapes = expected_shapes()
     for key in state:
         if key not in shapes:

@@ -11,13 +11,15 @@ flat object of fields (what ``diamond-sss tune`` writes). The resolved configura
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
+
+from diamond_sss.errors import DataError
+from diamond_sss.utils.io import read_json
 
 
 def _key(default: Any, meaning: str) -> Any:
@@ -242,10 +244,7 @@ def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = N
         path = Path(config_file)
         if not path.is_file():
             raise ValueError(f"config file not found: {path}")
-        try:
-            loaded = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: invalid JSON ({exc})") from exc
+        loaded = read_json(path)
         if not isinstance(loaded, dict):
             raise ValueError(f"{path}: expected a JSON object of config keys")
         for key, value in loaded.items():
@@ -293,4 +292,10 @@ def load_run_config(run: Path) -> TrainConfig:
     path = Path(run) / "config.json"
     if not path.is_file():
         raise ValueError(f"{run} is not a training run: {path} is missing")
-    return make_config("diamond", overrides=json.loads(path.read_text()))
+    saved = read_json(path)
+    if not isinstance(saved, dict):
+        raise DataError(f"{path}: expected a JSON object of config keys")
+    try:
+        return make_config("diamond", overrides=saved)
+    except ValueError as exc:
+        raise DataError(f"{path}: {exc}") from exc

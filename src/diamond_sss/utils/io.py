@@ -11,7 +11,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
+
+from diamond_sss.errors import DamagedFileError, DataError
 
 
 def default_mode(directory: bool = False) -> int:
@@ -59,14 +62,50 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
 
 def atomic_save_safetensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor],
                             metadata: dict[str, str] | None = None) -> Path:
-    """Save tensors (moved to CPU, made contiguous) to a safetensors file atomically."""
+    """Save tensors (moved to CPU, made contiguous) to a safetensors file atomically.
+
+    The written file is re-opened (header and sizes parsed, keys compared) before it replaces ``path``.
+    """
     cpu = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
-    return atomic_write(path, lambda tmp: save_file(cpu, str(tmp), metadata=metadata))
+
+    def write(tmp: Path) -> None:
+        save_file(cpu, str(tmp), metadata=metadata)
+        verify_safetensors(tmp, set(cpu), name=Path(path))
+
+    return atomic_write(path, write)
+
+
+def verify_safetensors(path: str | os.PathLike, keys: set[str], name: str | os.PathLike | None = None) -> None:
+    """Raise :class:`DamagedFileError` unless ``path`` opens as safetensors holding exactly ``keys``."""
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            found = set(handle.keys())
+    except (SafetensorError, OSError) as exc:
+        raise DamagedFileError(f"{name or path}: written safetensors file does not read back ({exc})") from exc
+    if found != keys:
+        raise DamagedFileError(f"{name or path}: written safetensors file holds keys {sorted(found)}, "
+                               f"expected {sorted(keys)}")
 
 
 def load_safetensors(path: str | os.PathLike) -> dict[str, torch.Tensor]:
-    """Load a safetensors file to CPU tensors (never a pickle)."""
-    return load_file(str(path), device="cpu")
+    """Load a safetensors file to CPU tensors (never a pickle); a damaged file raises naming it."""
+    if not Path(path).is_file():
+        raise DataError(f"{path}: file is missing")
+    try:
+        return load_file(str(path), device="cpu")
+    except (SafetensorError, OSError) as exc:
+        raise DamagedFileError(f"{path}: damaged or truncated safetensors file ({exc})") from exc
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """Parse a JSON file; a missing or corrupt file raises a :class:`DataError` naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: file is missing")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DamagedFileError(f"{path}: damaged or invalid JSON ({exc})") from exc
 
 
 def sha256_bytes(data: bytes) -> str:
