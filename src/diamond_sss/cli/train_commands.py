@@ -17,8 +17,9 @@ SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
 
 
 def train(data: Path, out: Path, split: str = "train", regime: str = "all", preset: str = "diamond",
-          iterations: int | None = None, config: Path | None = None, set_: SetArg = [],  # noqa: B006
-          seed: int = 0, resume: bool = False, device: str = "auto", quiet: bool = False) -> None:
+          iterations: int | None = None, keep_schedule: bool = False, config: Path | None = None,
+          set_: SetArg = [], seed: int = 0, resume: bool = False, device: str = "auto",  # noqa: B006
+          quiet: bool = False) -> None:
     """Reconstruct a relightable translucent object from an OLAT data set (SSS-3DGS backbone).
 
     Args:
@@ -27,22 +28,33 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
         split: training split.
         regime: capture regime: all | all-views-1-light | views=5%,lights=5% | views=5,lights=6 | images=10.
         preset: hyperparameter preset: diamond (Tab. 3, with multi-view losses) or sss3dgs (Tab. 4 original).
-        iterations: training steps (overrides the preset).
+        iterations: training steps; the preset's (and --config's) step-valued keys (densification
+            start, stop and interval, opacity reset, learning rate schedule, checkpoint and log intervals)
+            are scaled by iterations / the preset's iterations.
+        keep_schedule: with --iterations, keep the preset's step-valued keys as they are.
         config: JSON file of config keys (e.g. the best configuration written by `diamond-sss tune`).
         seed: seed of the regime selection, initialisation and every random draw.
         resume: continue from the newest checkpoint in --out.
         device: auto | cpu | cuda.
         quiet: no progress bar.
     """
+    from diamond_sss.training.config import scaled_run_schedule
     from diamond_sss.training.run import train_run
 
-    overrides = {"seed": seed, "device": device}
-    if iterations is not None:
+    console = Console()
+    overrides: dict = {"seed": seed, "device": device}
+    if iterations is not None and keep_schedule:
         overrides["iterations"] = iterations
+    elif iterations is not None:
+        scaled, changes = scaled_run_schedule(preset, iterations, config_file=config, sets=set_)
+        overrides.update(scaled)
+        listed = ", ".join(f"{key} {old}->{new}" for key, (old, new) in changes.items())
+        console.print(f"schedule scaled to {iterations} steps (--keep-schedule keeps the preset's): "
+                      f"{listed or 'no change'}")
     result = train_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides,
                        config_file=config, sets=set_, resume=resume, show_progress=not quiet)
-    Console().print(f"trained {result.steps} steps in {result.seconds:.1f} s, {result.num_gaussians} Gaussians, "
-                    f"final loss {result.final_loss:.4f} -> {out / 'model.safetensors'}")
+    console.print(f"trained {result.steps} steps in {result.seconds:.1f} s, {result.num_gaussians} Gaussians, "
+                  f"final loss {result.final_loss:.4f} -> {out / 'model.safetensors'}")
 
 
 def config(preset: str = "diamond", json: bool = False) -> None:

@@ -141,29 +141,58 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
-def short_schedule(iterations: int) -> dict[str, Any]:
-    """Overrides for a reconstruction of a few hundred steps at 64x64 on a CPU (demo, tests, benchmarks).
+SCHEDULE_KEYS = ("position_lr_delay_steps", "position_lr_max_steps", "lr_decay_step", "densify_from_iter",
+                 "densify_until_iter", "densification_interval", "opacity_reset_interval", "checkpoint_every",
+                 "log_every", "image_log_every")
+"""Step-valued keys: a run of another length scales them with :func:`scale_schedule`."""
 
-    Tab. 3's schedule compressed to ``iterations``: densification from 25% to 85% of the run every ~12%,
-    no opacity reset (too short for the Gaussians to recover), the position learning rate decaying over the
-    run, batch 1, 3k initial Gaussians capped at 8k, lighter multi-view and ray-tracing sampling.
+SHORT_SCHEDULE: dict[str, int] = {
+    "iterations": 1000, "position_lr_max_steps": 1000, "densify_from_iter": 250, "densify_until_iter": 850,
+    "densification_interval": 125, "opacity_reset_interval": 10_001, "log_every": 50, "checkpoint_every": 500,
+}
+"""Tab. 3's schedule compressed for a run of a few hundred steps (demo, benchmarks), at 1000 steps:
+densification from 25% to 85% of the run every 12.5%, no opacity reset (too short for the Gaussians to
+recover), the position learning rate decaying over the run."""
+
+CPU_BUDGET: dict[str, int] = {"batch_size": 1, "num_gaussians": 3_000, "max_gaussians": 8_000,
+                              "mv_pairs_per_step": 1, "mv_pixels_per_pair": 256, "raytrace_gaussians": 512}
+"""Batch 1, 3k initial Gaussians capped at 8k, lighter multi-view and ray-tracing sampling (64x64 on a CPU)."""
+
+
+def scale_schedule(values: Mapping[str, Any], scale: float) -> dict[str, Any]:
+    """``values`` with every :data:`SCHEDULE_KEYS` value times ``scale``, rounded down, at least 1 (0 stays 0).
+
+    The one schedule scaler: ``train --iterations``, :func:`short_schedule` and the tuning trials use it.
     """
-    return {
-        "iterations": iterations,
-        "position_lr_max_steps": iterations,
-        "batch_size": 1,
-        "num_gaussians": 3_000,
-        "max_gaussians": 8_000,
-        "densify_from_iter": max(1, iterations // 4),
-        "densify_until_iter": max(2, int(iterations * 0.85)),
-        "densification_interval": max(1, iterations // 8),
-        "opacity_reset_interval": 10 * iterations + 1,
-        "mv_pairs_per_step": 1,
-        "mv_pixels_per_pair": 256,
-        "raytrace_gaussians": 512,
-        "log_every": max(1, iterations // 20),
-        "checkpoint_every": max(1, iterations // 2),
-    }
+    if not scale > 0:
+        raise ValueError(f"schedule scale must be positive, got {scale}")
+    return {key: max(1, math.floor(value * scale + 1e-9)) if key in SCHEDULE_KEYS and value > 0 else value
+            for key, value in values.items()}
+
+
+def schedule_for(values: Mapping[str, Any], iterations: int) -> dict[str, Any]:
+    """``iterations`` and the schedule keys of ``values`` (which holds its own ``iterations``) scaled to it."""
+    if iterations <= 0:
+        raise ValueError(f"iterations must be positive, got {iterations}")
+    schedule = {key: values[key] for key in SCHEDULE_KEYS if key in values}
+    return {"iterations": iterations, **scale_schedule(schedule, iterations / values["iterations"])}
+
+
+def scaled_run_schedule(preset: str, iterations: int, config_file: Path | None = None,
+                        sets: Sequence[str] = ()) -> tuple[dict[str, Any], dict[str, tuple[Any, Any]]]:
+    """Overrides that scale the schedule of ``preset`` (+ ``config_file``) to ``iterations`` steps, and the
+    changed keys as ``key -> (before, after)``. Keys given in ``sets`` are left to their ``--set`` value."""
+    base = make_config(preset, config_file=config_file).to_dict()
+    fixed = parse_sets(sets)
+    scaled = {key: value for key, value in schedule_for(base, iterations).items() if key not in fixed}
+    changes = {key: (base[key], value) for key, value in scaled.items() if key != "iterations" and value != base[key]}
+    return scaled, changes
+
+
+def short_schedule(iterations: int) -> dict[str, Any]:
+    """Overrides for a reconstruction of ``iterations`` steps at 64x64 on a CPU: :data:`SHORT_SCHEDULE`
+    scaled to ``iterations``, with :data:`CPU_BUDGET`."""
+    return {**schedule_for(SHORT_SCHEDULE, iterations), **CPU_BUDGET}
 
 
 def field_types() -> dict[str, type]:
