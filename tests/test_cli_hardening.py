@@ -97,3 +97,21 @@ def test_lpips_and_empty_mask_warnings_are_one_line_each_once(tmp_path):
     assert len(lines) == 2, result.stderr
     assert lines[0] == "WARNING: LPIPS is disabled: no weights file given and $DIAMOND_SSS_LPIPS_WEIGHTS is not set"
     assert lines[1].startswith("WARNING: ") and "v000_l000.png: the mask is empty (frame 0 of" in lines[1]
+
+
+def test_cli_help_imports_no_heavy_package():
+    script = (
+        "import contextlib, io, sys\n"
+        "import diamond_sss.cli.main as cli\n"
+        "for argv in (['--help'], ['train', '--help'], ['synth', '--help'], ['nvs', '--help']):\n"
+        "    try:\n"
+        "        with contextlib.redirect_stdout(io.StringIO()):\n"
+        "            cli.main(argv)\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "heavy = ('torch', 'diffusers', 'transformers', 'mitsuba', 'optuna', 'viser', 'matplotlib')\n"
+        "print(','.join(m for m in heavy if m in sys.modules))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")}
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
+    assert result.stdout.strip() == ""

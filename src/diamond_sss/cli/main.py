@@ -13,6 +13,7 @@ from diamond_sss.cli.demo import demo
 from diamond_sss.cli.nvs_commands import finetune_nvs, nvs
 from diamond_sss.cli.pipeline_commands import run
 from diamond_sss.cli.relight_commands import finetune_relight, relight
+from diamond_sss.cli.synth_commands import synth
 from diamond_sss.cli.train_commands import ablate, config, evaluate, export, render, train, view
 from diamond_sss.cli.tune_commands import tune
 from diamond_sss.errors import DataError
@@ -20,8 +21,6 @@ from diamond_sss.errors import DataError
 
 def commands() -> dict[str, Callable[..., None]]:
     """The subcommands, by name."""
-    from diamond_sss.synth.cli import synth
-
     return {"demo": demo, "info": info, "regimes": regimes, "synth": synth, "config": config, "train": train, "eval": evaluate,
             "render": render, "export": export, "view": view, "ablate": ablate, "run": run, "tune": tune,
             "finetune-relight": finetune_relight, "relight": relight, "finetune-nvs": finetune_nvs, "nvs": nvs}

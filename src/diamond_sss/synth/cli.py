@@ -1,88 +1,12 @@
-"""``diamond-sss synth``: render a synthetic translucent OLAT capture with Mitsuba 3."""
+"""``python -m diamond_sss.synth.cli``: the ``diamond-sss synth`` command on its own (scripts use it)."""
 
 from __future__ import annotations
 
-import pathlib
+import tyro
 
-from tqdm import tqdm
+from diamond_sss.cli.synth_commands import synth
 
-from diamond_sss.synth.materials import get_material
-from diamond_sss.synth.render import SynthConfig, plan_pairs, synthesize
-from diamond_sss.synth.scene import LightStageConfig
-from diamond_sss.synth.shapes import shape_names
-
-
-def synth(
-    shape: str,
-    material: str,
-    out: pathlib.Path,
-    views: int = 40,
-    lights: int = 24,
-    size: int = 64,
-    spp: int = 64,
-    test_views: int = 8,
-    test_lights: int = 6,
-    seed: int = 0,
-    maps: bool = True,
-    subset: str | None = None,
-    camera_radius: float = 4.0,
-    light_radius: float = 5.0,
-    fov_x_deg: float = 32.0,
-) -> None:
-    """Render a physically based OLAT capture of a procedural translucent object (Mitsuba 3, volpath).
-
-    Writes NeRF-synthetic style ``transforms_train.json`` / ``transforms_test.json`` (one frame per view,
-    one RGBA PNG per light), per-view depth / normal ``.npy`` maps and ``meta.json`` into ``out``. The test
-    split uses novel cameras and novel lights, interleaved between the training ones.
-
-    Args:
-        shape: Procedural shape: blob, bunny, bust, sphere or torus.
-        material: Translucent material: glazed_wax, jade, marble, skin, soap or wax.
-        out: Output folder of the object.
-        views: Training camera views on a sphere around the object.
-        lights: Training point lights on a larger sphere.
-        size: Image width and height in pixels.
-        spp: Samples per pixel of each OLAT image.
-        test_views: Novel test views (0: no test split).
-        test_lights: Novel test lights (0: no test split).
-        seed: Object seed (camera/light azimuths, blob shape, per-image sampler seeds).
-        maps: Also write per-view depth (camera z) and world-normal maps.
-        subset: Render only part of the training lattice, e.g. "relight:3x10,novelview:10x3"
-            (3 views x 10 lights each, plus 3 lights x 10 views each).
-        camera_radius: Distance of the cameras from the object centre (object radius 1).
-        light_radius: Distance of the lights from the object centre.
-        fov_x_deg: Horizontal field of view in degrees.
-    """
-    if shape not in shape_names():
-        raise ValueError(f"unknown shape {shape!r}; valid shapes: {', '.join(shape_names())}")
-    get_material(material)
-    stage = LightStageConfig(
-        views=views,
-        lights=lights,
-        test_views=test_views,
-        test_lights=test_lights,
-        camera_radius=camera_radius,
-        light_radius=light_radius,
-        fov_x_deg=fov_x_deg,
-        seed=seed,
-    )
-    config = SynthConfig(
-        shape=shape,
-        material=material,
-        out=pathlib.Path(out),
-        stage=stage,
-        size=size,
-        spp=spp,
-        maps=maps,
-        subset=subset,
-        seed=seed,
-    )
-    total = sum(len(p) for p in plan_pairs(config).values())
-    with tqdm(total=total, desc=f"synth {shape}/{material}", unit="img") as bar:
-        synthesize(config, on_image=bar.update)
-
+__all__ = ["synth"]
 
 if __name__ == "__main__":
-    import tyro
-
     tyro.cli(synth)
