@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
+import tyro
 from rich.console import Console
 
 
@@ -139,3 +141,58 @@ def nvs(
         geometry=None if geometry is None else geometry_source(geometry, device=device, seed=seed),
     )
     Console().print(f"novel views -> {manifest}")
+
+
+def convert_free3d(src: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SRC")],
+                   out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")], image_size: int = 256, vae: Path | None = None, seed: int = 0,
+                   half: bool = False) -> None:
+    """Convert the official Free3D checkpoint into a novel-view model folder (config.json + model.safetensors).
+
+    The UNet (with ray conditioning and multi-view attention) and the context projection come from the
+    checkpoint; Free3D embeds the reference with CLIP, which this model replaces by a small reference
+    encoder: that encoder starts from a seeded initialisation and needs fine-tuning before the model
+    conditions on the reference. The VAE is not converted: give the SD 1.x VAE as a diffusers folder.
+
+    Args:
+        src: official checkpoint (.ckpt with a state_dict, or .safetensors).
+        out: model folder to write (for `nvs --model` and `run --nvs-model`).
+        image_size: side of the generated images in pixels (Free3D: 256).
+        vae: local diffusers AutoencoderKL folder recorded in config.json (latent space).
+        seed: seed of the reference encoder's initialisation.
+        half: store the weights in float16.
+    """
+    from diamond_sss.diffusion.nvs.convert import free3d_config
+
+    config = free3d_config(image_size=image_size, vae_path=None if vae is None else str(vae))
+    folder, count = write_free3d_model(src, out, config, seed=seed, half=half)
+    Console().print(f"{count} tensors from {src} -> {folder} (use it with --model / --nvs-model)")
+
+
+def write_free3d_model(src: Path, out: Path, config, seed: int = 0, half: bool = False) -> tuple[Path, int]:
+    """Write the model folder of ``convert-free3d`` for ``config`` (an NVSConfig); returns it and the number
+    of tensors taken from the checkpoint."""
+    import pickle
+    from dataclasses import asdict
+
+    import torch
+
+    from diamond_sss.diffusion.nvs.convert import load_free3d_checkpoint
+    from diamond_sss.diffusion.nvs.model import CONFIG_NAME, WEIGHTS_NAME, ReferenceEncoder
+    from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json
+
+    try:
+        converted, _ = load_free3d_checkpoint(src, config)
+    except KeyError as exc:
+        raise ValueError(f"{src}: not an official Free3D checkpoint ({exc.args[0]})") from exc
+    except (pickle.UnpicklingError, RuntimeError, EOFError) as exc:
+        raise ValueError(f"{src}: damaged or unreadable checkpoint ({exc})") from exc
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        encoder = ReferenceEncoder(config.model_channels, config.encoder_channels, config.embed_dim)
+    tensors = {**converted, **{f"reference_encoder.{k}": v for k, v in encoder.state_dict().items()},
+               "null_embedding": torch.zeros(config.embed_dim)}
+    if half:
+        tensors = {k: v.half() if v.is_floating_point() else v for k, v in tensors.items()}
+    atomic_save_safetensors(Path(out) / WEIGHTS_NAME, tensors)
+    atomic_write_json(Path(out) / CONFIG_NAME, asdict(config))
+    return Path(out), len(converted)
