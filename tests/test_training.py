@@ -186,6 +186,10 @@ def _train_eval_render_export(capture, tmp_path, capsys):
     assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == ["frame_0000.png", "frame_0001.png"]
     main(["render", "--run", str(run), "--out", str(tmp_path / "orbit"), "--orbit", "3", "--size", "12"])
     assert (tmp_path / "orbit" / "orbit.gif").is_file()
+    with pytest.raises(SystemExit):
+        main(["render", "--run", str(run), "--out", str(tmp_path / "orbit2"), "--orbit", "3", "--video", "o.avi"])
+    assert "expected a file name ending in .gif or .mp4" in capsys.readouterr().err
+    assert not (tmp_path / "orbit2").exists()  # refused before rendering
     main(["export", "--run", str(run), "--ply", str(tmp_path / "scene.ply")])
     scene, _ = load_scene(run)
     assert import_ply(tmp_path / "scene.ply").num_gaussians == scene.gaussians.num_gaussians

@@ -121,16 +121,16 @@ def render(run: Path, out: Path, data: Path | None = None, split: str = "test", 
            orbit: int = 0, orbit_elevation_deg: float = 20.0, light: list[float] = [],  # noqa: B006
            light_intensity: float = 1.0, base_color: list[float] = [], roughness: float | None = None,  # noqa: B006
            metallic: float | None = None, subsurface: float | None = None, size: int | None = None,
-           device: str = "auto") -> None:
+           video: Path = Path("orbit.gif"), device: str = "auto") -> None:
     """Render a trained scene from data cameras or an orbit, under any point light(s), with material edits.
 
     Args:
         run: training run folder.
-        out: output folder for PNGs (and orbit.gif).
+        out: output folder for PNGs (and the orbit animation).
         data: data folder whose cameras (and first light) to use; default: the run's training data.
         split: split of --data whose cameras --views index.
         views: lattice view indices of --split to render (default: all).
-        orbit: render an orbit of N frames around the object instead (writes orbit.gif).
+        orbit: render an orbit of N frames around the object instead (and the --video animation).
         orbit_elevation_deg: elevation of the orbit.
         light: light position(s) x y z [x y z ...] (several lights are summed); default: each view's
             first light in the data.
@@ -140,6 +140,8 @@ def render(run: Path, out: Path, data: Path | None = None, split: str = "test", 
         metallic: override the metalness.
         subsurface: override the subsurfaceness s.
         size: image size of orbit frames (default: the data's width).
+        video: orbit animation, a name in --out or a path: .mp4 writes an MP4 (needs imageio-ffmpeg, the
+            `video` extra), .gif a GIF.
         device: auto | cpu | cuda.
     """
     from diamond_sss.training.run import render_run
@@ -148,7 +150,7 @@ def render(run: Path, out: Path, data: Path | None = None, split: str = "test", 
                                    ("metallic", metallic), ("subsurface", subsurface)) if v is not None}
     written = render_run(run, out, data=data, split=split, views=views, orbit=orbit,
                          orbit_elevation_deg=orbit_elevation_deg, lights=light, light_intensity=light_intensity,
-                         overrides=overrides, size=size, device=device)
+                         overrides=overrides, size=size, device=device, video=video)
     Console().print(f"wrote {len(written)} files to {out}")
 
 

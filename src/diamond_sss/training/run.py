@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -23,7 +24,7 @@ from diamond_sss.evaluation.evaluate import (
 )
 from diamond_sss.training.config import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer, TrainResult, load_scene, resolve_device
-from diamond_sss.utils.io import atomic_write, atomic_write_json, read_json
+from diamond_sss.utils.io import atomic_write_bytes, atomic_write_json, read_json
 
 
 def train_run(data: Path, out: Path, *, split: str = "train", regime: str = "all", preset: str = "diamond",
@@ -81,11 +82,37 @@ def orbit_cameras(center: torch.Tensor, radius: float, frames: int, elevation_de
 
 
 @torch.no_grad()
+def check_animation_path(path: Path) -> str:
+    """The suffix of an orbit animation file (``.gif`` or ``.mp4``); MP4 needs imageio-ffmpeg."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".gif", ".mp4"):
+        raise ValueError(f"--video {path}: expected a file name ending in .gif or .mp4")
+    if suffix == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise ValueError(f"--video {path}: writing MP4 needs imageio-ffmpeg (pip install 'diamond-sss[video]'); "
+                         "a .gif name needs nothing more")
+    return suffix
+
+
+def write_animation(path: Path, frames: Sequence[np.ndarray], frame_ms: int = 80) -> Path:
+    """Frames ``[H,W,3]`` uint8 as a looping GIF or, for a ``.mp4`` name, an H.264 MP4 (sides padded to even)."""
+    suffix = check_animation_path(path)
+    stack = np.stack(frames)
+    if suffix == ".gif":
+        return atomic_write_bytes(path, iio.imwrite("<bytes>", stack, extension=".gif", duration=frame_ms, loop=0))
+    pad = ((0, 0), (0, stack.shape[1] % 2), (0, stack.shape[2] % 2), (0, 0))
+    video = iio.imwrite("<bytes>", np.pad(stack, pad, mode="edge"), extension=".mp4", plugin="FFMPEG",
+                        fps=1000.0 / frame_ms, codec="libx264", macro_block_size=1)
+    return atomic_write_bytes(path, video)
+
+
 def render_run(run: Path, out: Path, *, data: Path | None = None, split: str = "test",
                views: Sequence[int] = (), orbit: int = 0, orbit_elevation_deg: float = 20.0,
                lights: Sequence[float] = (), light_intensity: float = 1.0, overrides: dict | None = None,
-               size: int | None = None, device: str = "auto") -> list[Path]:
-    """Render data cameras or an orbit under given lights (summed) with material overrides; PNGs + GIF."""
+               size: int | None = None, device: str = "auto", video: Path = Path("orbit.gif")) -> list[Path]:
+    """Render data cameras or an orbit under given lights (summed) with material overrides: PNGs, and for an
+    orbit the animation ``out / video`` (GIF, or MP4 for a ``.mp4`` name)."""
+    if orbit > 0:
+        check_animation_path(video)
     run = Path(run)
     scene, cfg = load_scene(run, resolve_device(device))
     dev = next(scene.parameters()).device
@@ -126,7 +153,5 @@ def render_run(run: Path, out: Path, *, data: Path | None = None, split: str = "
         written.append(write_png(out / f"frame_{k:04d}.png", image))
         frames.append(image[..., :3])
     if orbit > 0:
-        gif = out / "orbit.gif"
-        atomic_write(gif, lambda tmp: iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=80, loop=0))
-        written.append(gif)
+        written.append(write_animation(out / video, frames))
     return written
