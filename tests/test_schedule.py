@@ -30,10 +30,14 @@ def test_demo_overrides_are_unchanged():
 def test_scale_schedule_rounds_down_keeps_zero_and_other_keys():
     values = {"densify_from_iter": 500, "densification_interval": 150, "position_lr_delay_steps": 0,
               "lambda_dssim": 0.2, "num_gaussians": 5000}
-    assert scale_schedule(values, 0.05) == {"densify_from_iter": 25, "densification_interval": 7,
-                                            "position_lr_delay_steps": 0, "lambda_dssim": 0.2,
-                                            "num_gaussians": 5000}
-    assert scale_schedule(values, 1e-6)["densification_interval"] == 1
+    assert scale_schedule(values, 0.05, floors={}) == {"densify_from_iter": 25, "densification_interval": 7,
+                                                       "position_lr_delay_steps": 0, "lambda_dssim": 0.2,
+                                                       "num_gaussians": 5000}
+    assert scale_schedule(values, 1e-6, floors={})["densification_interval"] == 1
+    floored = scale_schedule({**values, "opacity_reset_interval": 3000}, 0.005)
+    assert (floored["densification_interval"], floored["opacity_reset_interval"]) == (10, 200)
+    assert floored["densify_from_iter"] == 2
+    assert scale_schedule({"densification_interval": 4}, 0.5)["densification_interval"] == 4  # below its floor
     assert scale_schedule({"densify_until_iter": 850}, 0.15)["densify_until_iter"] == 127  # 127.5 down
     with pytest.raises(ValueError, match="schedule scale must be positive"):
         scale_schedule(values, 0.0)
@@ -46,6 +50,7 @@ def test_run_schedule_scales_the_preset_and_config_file_but_not_set_keys(tmp_pat
     assert scaled["iterations"] == 1000 and scaled["densify_from_iter"] == 50
     assert (scaled["densify_until_iter"], scaled["densification_interval"]) == (1000, 15)
     assert (scaled["checkpoint_every"], scaled["position_lr_max_steps"]) == (50, 3000)
+    assert scaled["opacity_reset_interval"] == 200  # 100 scaled, kept at the recovery floor
     assert changes["densify_from_iter"] == (500, 50) and "position_lr_delay_steps" not in changes
     best = tmp_path / "best.json"
     best.write_text(json.dumps({"densify_from_iter": 800}))

@@ -63,14 +63,15 @@ def test_search_space_is_tab4_and_brackets_both_columns():
 
 def test_schedule_keys_scale_with_the_trial_length():
     params = preset_params("sss3dgs")
-    scaled = scale_schedule(params, 0.05)
+    scaled = scale_schedule(params, 0.05, floors={})  # as the trials scale it
     assert (scaled["densification_interval"], scaled["opacity_reset_interval"]) == (5, 150)
     assert (scaled["densify_from_iter"], scaled["densify_until_iter"]) == (25, 750)
     assert all(scaled[k] == params[k] for k in params if k not in SCHEDULE_KEYS)
-    assert all(v == 1 for k, v in scale_schedule(params, 1e-6).items() if k in SCHEDULE_KEYS)
+    assert all(v == 1 for k, v in scale_schedule(params, 1e-6, floors={}).items() if k in SCHEDULE_KEYS)
     settings = ObjectiveSettings(iterations=500, overrides={"device": "cpu"})
     cfg = settings.trial_config(params)
     assert (settings.scale, cfg.iterations, cfg.densify_until_iter, cfg.lambda_dssim) == (0.05, 500, 750, 0.2)
+    assert cfg.densification_interval == 5  # trials keep every searched value distinct: no floors
     with pytest.raises(ValueError, match="schedule scale must be positive"):
         scale_schedule(params, 0.0)
 

@@ -159,15 +159,25 @@ CPU_BUDGET: dict[str, int] = {"batch_size": 1, "num_gaussians": 3_000, "max_gaus
 """Batch 1, 3k initial Gaussians capped at 8k, lighter multi-view and ray-tracing sampling (64x64 on a CPU)."""
 
 
-def scale_schedule(values: Mapping[str, Any], scale: float) -> dict[str, Any]:
-    """``values`` with every :data:`SCHEDULE_KEYS` value times ``scale``, rounded down, at least 1 (0 stays 0).
+SCHEDULE_FLOORS: dict[str, int] = {"densification_interval": 10, "opacity_reset_interval": 200}
+"""Fewest steps a scaled run keeps for processes that take optimisation steps, whatever the run's length:
+the gradient statistics of one densification (below ~10 steps a Gaussian is seen once or twice and the
+noisy statistic densifies nearly all of them: 300k Gaussians after 50 steps) and the recovery of the
+opacities after a reset (~100 Adam steps at ``opacity_lr`` to climb back from 0.01)."""
 
-    The one schedule scaler: ``train --iterations``, :func:`short_schedule` and the tuning trials use it.
+
+def scale_schedule(values: Mapping[str, Any], scale: float,
+                   floors: Mapping[str, int] = SCHEDULE_FLOORS) -> dict[str, Any]:
+    """``values`` with every :data:`SCHEDULE_KEYS` value times ``scale``, rounded down, at least 1 (0 stays 0)
+    and never below ``min(value, floors[key])``.
+
+    The one schedule scaler: ``train --iterations``, :func:`short_schedule` and the tuning trials (which pass
+    no floors, so that every searched value stays distinct) use it.
     """
     if not scale > 0:
         raise ValueError(f"schedule scale must be positive, got {scale}")
-    return {key: max(1, math.floor(value * scale + 1e-9)) if key in SCHEDULE_KEYS and value > 0 else value
-            for key, value in values.items()}
+    return {key: max(1, min(value, floors.get(key, 1)), math.floor(value * scale + 1e-9))
+            if key in SCHEDULE_KEYS and value > 0 else value for key, value in values.items()}
 
 
 def schedule_for(values: Mapping[str, Any], iterations: int) -> dict[str, Any]:

@@ -81,8 +81,8 @@ class ObjectiveSettings:
 
     def trial_config(self, params: Mapping[str, Any]) -> TrainConfig:
         """The configuration a trial with sampled ``params`` (full-schedule units) trains with."""
-        return make_config(self.preset, overrides={**self.overrides, **scale_schedule(params, self.scale),
-                                                   "iterations": self.iterations})
+        scaled = scale_schedule(params, self.scale, floors={})
+        return make_config(self.preset, overrides={**self.overrides, **scaled, "iterations": self.iterations})
 
 
 class Objective:
