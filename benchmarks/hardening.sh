@@ -21,6 +21,11 @@ row() {  # row "label" command...
   out=$("$@" 2>&1 | grep -v "^\s*$" | tail -n 3 | tr '\n' ' ' | sed "s|$D|D|g; s/|/\\|/g" | cut -c1-300)
   echo "| \`$label\` | $out |"
 }
+row_only() {  # row_only PATTERN "label" command...: only the output lines matching PATTERN
+  local pattern="$1" label="$2"; shift 2
+  out=$("$@" 2>&1 | grep -E "$pattern" | tr '\n' ' ' | sed "s|$D|D|g; s/|/\\|/g" | cut -c1-300)
+  echo "| \`$label\` | $out |"
+}
 cp_run() { rm -rf $D/r2; cp -r $D/run $D/r2; }
 row "train --set position_lr_init=inf" $CLI train --data $D/data --out $D/x --set position_lr_init=inf
 row "train --set lambda_mask=nan" $CLI train --data $D/data --out $D/x --set lambda_mask=nan
@@ -45,13 +50,13 @@ row "train --resume (newest state.json corrupt)" $CLI train --data $D/data --out
 cp_run; for f in $D/r2/checkpoints/step_*/optim.safetensors; do : > $f; done
 row "train --resume (every optim.safetensors empty)" $CLI train --data $D/data --out $D/r2 --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
 row "train --resume (no checkpoint)" $CLI train --data $D/data --out $D/fresh --iterations 2 --quiet $TINY --resume
-row "train --iterations 50 (sss3dgs preset)" $CLI train --data $D/data --out $D/short --preset sss3dgs --iterations 50 --quiet $TINY
-row "eval (no LPIPS weights; twice in one process is one line)" $CLI eval --run $D/run --data $D/data --max-images 2
+row_only "schedule|trained" "train --iterations 50 (sss3dgs preset)" $CLI train --data $D/data --out $D/short --preset sss3dgs --iterations 50 --quiet $TINY
+row_only "WARNING|Traceback|Warning" "eval (no LPIPS weights)" $CLI eval --run $D/run --data $D/data --max-images 2
 row "render --orbit 3 --video o.avi" $CLI render --run $D/run --out $D/o --orbit 3 --video o.avi
 row "render --orbit 3 --video o.mp4 (imageio-ffmpeg missing)" $CLI render --run $D/run --out $D/o --orbit 3 --video o.mp4
 row "render --orbit 3 --video o.mp4 --size 13 (imageio-ffmpeg present)" env PYTHONPATH=$ROOT/src:${VIDEO_PYTHONPATH:-} $CLI render --run $D/run --out $D/o --orbit 3 --video o.mp4 --size 13
-row "view --host 0.0.0.0 (stopped after 15 s)" timeout 15 $CLI view --run $D/run --host 0.0.0.0 --port 8765 --device cpu
-row "view (default host, stopped after 15 s)" timeout 15 $CLI view --run $D/run --port 8766 --device cpu
+row_only "WARNING|viewer of" "view --host 0.0.0.0 (stopped after 15 s)" timeout 15 $CLI view --run $D/run --host 0.0.0.0 --port 8765 --device cpu
+row_only "WARNING|viewer of" "view (default host, stopped after 15 s)" timeout 15 $CLI view --run $D/run --port 8766 --device cpu
 cp -r $D/data $D/ex; ls $D/ex/train | grep png | sed 's/\.png$//' > $D/ex/exclude_list.txt
 row "info (exclude_list.txt names every image)" $CLI info --data $D/ex
 rm $D/ex/exclude_list.txt; $PY -c "

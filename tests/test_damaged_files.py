@@ -134,7 +134,8 @@ def test_corrupt_latest_json_is_named_and_the_folders_are_used(trained, tmp_path
     with caplog.at_level(logging.WARNING):
         folder, loaded = resume_checkpoint(run)
     assert folder.name == "step_0000004" and loaded.step == 4
-    assert any("latest.json is damaged" in r.getMessage() for r in caplog.records)
+    assert any(r.getMessage().startswith(f"{run / 'checkpoints' / 'latest.json'}: damaged or invalid JSON")
+               for r in caplog.records)
 
 
 def test_every_checkpoint_damaged_is_an_error_naming_them(trained, tmp_path):

@@ -41,7 +41,7 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
     from diamond_sss.training.config import scaled_run_schedule
     from diamond_sss.training.run import train_run
 
-    console = Console()
+    console = Console(soft_wrap=True)
     overrides: dict = {"seed": seed, "device": device}
     if iterations is not None and keep_schedule:
         overrides["iterations"] = iterations

@@ -122,8 +122,11 @@ def checkpoint_folders(run_dir: Path) -> list[Path]:
     if pointer.is_file():
         try:
             named = root / str(read_json(pointer)["dir"])
-        except (DataError, KeyError, TypeError) as exc:
-            logger.warning("%s is damaged (%s): looking for checkpoint folders instead", pointer, exc)
+        except DataError as exc:
+            logger.warning("%s; looking for checkpoint folders instead", exc)
+        except (KeyError, TypeError) as exc:
+            logger.warning("%s: no checkpoint folder named (%r); looking for checkpoint folders instead", pointer,
+                           exc)
         else:
             folders.sort(key=lambda folder: folder != named)
     return folders
