@@ -18,12 +18,12 @@ TINY="--set num_gaussians=200 --set lambda_lpips=0 --set raytrace_gaussians=32 -
 $CLI train --data $D/data --out $D/run --iterations 6 --quiet $TINY --set checkpoint_every=2 > /dev/null 2>&1
 row() {  # row "label" command...
   local label="$1"; shift
-  out=$("$@" 2>&1 | grep -v "^\s*$" | tail -n 3 | tr '\n' ' ' | sed "s|$D|D|g; s/|/\\|/g" | cut -c1-300)
+  out=$("$@" 2>&1 | grep -v "^\s*$" | tail -n 3 | tr '\n' ' ' | sed "s|$D|D|g; s/|/\\|/g" | cut -c1-700)
   echo "| \`$label\` | $out |"
 }
 row_only() {  # row_only PATTERN "label" command...: only the output lines matching PATTERN
   local pattern="$1" label="$2"; shift 2
-  out=$("$@" 2>&1 | grep -E "$pattern" | tr '\n' ' ' | sed "s|$D|D|g; s/|/\\|/g" | cut -c1-300)
+  out=$("$@" 2>&1 | grep -E "$pattern" | tr '\n' ' ' | sed "s|$D|D|g; s/|/\\|/g" | cut -c1-700)
   echo "| \`$label\` | $out |"
 }
 cp_run() { rm -rf $D/r2; cp -r $D/run $D/r2; }
@@ -49,7 +49,7 @@ cp_run; echo '{"step": 4' > $D/r2/checkpoints/step_0000004/state.json
 row "train --resume (newest state.json corrupt)" $CLI train --data $D/data --out $D/r2 --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
 cp_run; for f in $D/r2/checkpoints/step_*/optim.safetensors; do : > $f; done
 row "train --resume (every optim.safetensors empty)" $CLI train --data $D/data --out $D/r2 --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
-row "train --resume (no checkpoint)" $CLI train --data $D/data --out $D/fresh --iterations 2 --quiet $TINY --resume
+row "train --resume (no checkpoint)" $CLI train --data $D/data --out $D/fresh --iterations 2 --keep-schedule --quiet $TINY --resume
 row_only "schedule|trained" "train --iterations 50 (sss3dgs preset)" $CLI train --data $D/data --out $D/short --preset sss3dgs --iterations 50 --quiet $TINY
 row_only "WARNING|Traceback|Warning" "eval (no LPIPS weights)" $CLI eval --run $D/run --data $D/data --max-images 2
 row "render --orbit 3 --video o.avi" $CLI render --run $D/run --out $D/o --orbit 3 --video o.avi
