@@ -1,7 +1,6 @@
-"""Utilities shared by the diffusion models: EMA, DDIM sampling, output cache, hashing, checkpoints."""
+"""Utilities shared by the diffusion models: EMA, DDIM sampling, output cache, hashing."""
 
 from diamond_sss.diffusion.common.cache import OutputCache
-from diamond_sss.diffusion.common.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from diamond_sss.diffusion.common.ema import EMA
 from diamond_sss.diffusion.common.hashing import files_hash, state_dict_hash
 from diamond_sss.diffusion.common.sampling import (
@@ -18,12 +17,9 @@ __all__ = [
     "SchedulerConfig",
     "ddim_sample",
     "files_hash",
-    "latest_checkpoint",
-    "load_checkpoint",
     "make_ddim_scheduler",
     "make_ddpm_scheduler",
     "predicted_clean",
-    "save_checkpoint",
     "state_dict_hash",
     "v_target",
 ]
