@@ -12,7 +12,6 @@ import json
 import os
 import shutil
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 import torch
@@ -23,6 +22,7 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.data.conventions import intrinsics_from_fov, opengl_c2w_to_opencv_w2c, scale_intrinsics
 from diamond_sss.data.images import to_srgb8, write_png
 from diamond_sss.diffusion.common import OutputCache, files_hash
+from diamond_sss.diffusion.common.paths import default_cache_dir, shipped_model_dir
 from diamond_sss.diffusion.geometry.base import GeometryError, GeometrySource
 from diamond_sss.diffusion.nvs.data import load_rgba_views
 from diamond_sss.diffusion.nvs.model import CONFIG_NAME, NVSBatch, NVSConfig, NVSModel
@@ -33,13 +33,8 @@ MANIFEST = "manifest.json"
 
 
 def default_model_dir() -> Path:
-    """The model shipped inside the package (``diamond_sss/assets/models/nvs``)."""
-    return Path(str(resources.files("diamond_sss") / "assets" / "models" / "nvs"))
-
-
-def default_cache_dir() -> Path:
-    """``$DIAMOND_SSS_CACHE/nvs``, default ``~/.cache/diamond_sss/nvs``."""
-    return Path(os.environ.get("DIAMOND_SSS_CACHE", Path.home() / ".cache" / "diamond_sss")) / "nvs"
+    """The novel-view model shipped inside the package (:func:`~diamond_sss.diffusion.common.paths.shipped_model_dir`)."""
+    return shipped_model_dir("nvs")
 
 
 @dataclass
@@ -247,7 +242,7 @@ def generate_novel_views(
             "geometry": geometry.key() if config.warp_hint else None,
         }
     )
-    cache = OutputCache(cache_dir if cache_dir is not None else default_cache_dir())
+    cache = OutputCache(cache_dir if cache_dir is not None else default_cache_dir("nvs"))
 
     def write(folder: Path) -> None:
         model = NVSModel.load(model_dir).to(device)

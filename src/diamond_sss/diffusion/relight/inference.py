@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 import torch
@@ -21,6 +20,7 @@ from torch import Tensor
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.images import load_rgba, to_srgb8, write_png
 from diamond_sss.diffusion.common.cache import OutputCache
+from diamond_sss.diffusion.common.paths import default_cache_dir, shipped_model_dir
 from diamond_sss.diffusion.geometry.base import GeometrySource
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, model_to_image
 from diamond_sss.diffusion.relight.light import light_code
@@ -43,14 +43,13 @@ class RelitImage:
 
 
 def shipped_model_path() -> Path:
-    """Folder of the relighting model shipped in the package (``assets/models/relight``)."""
-    return Path(str(resources.files("diamond_sss") / "assets" / "models" / "relight"))
+    """The relighting model shipped in the package (:func:`~diamond_sss.diffusion.common.paths.shipped_model_dir`)."""
+    return shipped_model_dir("relight")
 
 
 def default_cache_root() -> Path:
-    """``$DIAMOND_SSS_CACHE/relight``, else ``~/.cache/diamond_sss/relight``."""
-    base = os.environ.get("DIAMOND_SSS_CACHE") or Path.home() / ".cache" / "diamond_sss"
-    return Path(base) / "relight"
+    """The relighting cache (:func:`~diamond_sss.diffusion.common.paths.default_cache_dir`)."""
+    return default_cache_dir("relight")
 
 
 def load_model(path: str | os.PathLike | None = None, device: str = "cpu") -> RelightDiffusion:
