@@ -8,7 +8,8 @@ import torch
 from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.common.hashing import files_hash, state_dict_hash
 from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
-from diamond_sss.diffusion.common.sampling import SchedulerConfig, ddim_sample, make_ddim_scheduler
+from diamond_sss.diffusion.common.sampling import ddim_sample
+from diamond_sss.diffusion.common.schedulers import SchedulerConfig, make_ddim_scheduler
 from diamond_sss.training.checkpoint import (
     latest_accelerate_checkpoint,
     load_accelerate_checkpoint,

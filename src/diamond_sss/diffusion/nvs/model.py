@@ -18,10 +18,11 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from diffusers import AutoencoderKL, DDIMScheduler, DDPMScheduler, UNet2DConditionModel
+from diffusers import AutoencoderKL, DDPMScheduler, UNet2DConditionModel
 from torch import Tensor, nn
 
 from diamond_sss.data.conventions import scale_intrinsics
+from diamond_sss.diffusion.common.schedulers import SchedulerConfig, make_ddpm_scheduler
 from diamond_sss.diffusion.nvs.layers import ConditioningSlot, graft_free3d_layers, set_layer_checkpointing
 from diamond_sss.diffusion.nvs.rays import RELATIVE_POSE_CHANNELS, ray_embedding, relative_spherical_pose
 from diamond_sss.diffusion.nvs.warp import WARP_CHANNELS, forward_warp, resize_depth
@@ -108,6 +109,26 @@ class NVSConfig:
         """Side of the reference image and depth map the warp hint is splatted from."""
         return self.image_size * self.warp_supersample
 
+    @property
+    def scheduler(self) -> SchedulerConfig:
+        """The noise schedule (training DDPM and sampling DDIM; no zero-terminal-SNR rescaling)."""
+        return SchedulerConfig(
+            num_train_timesteps=self.num_train_timesteps,
+            beta_start=self.beta_start,
+            beta_end=self.beta_end,
+            beta_schedule=self.beta_schedule,
+            prediction_type=self.prediction_type,
+            rescale_betas_zero_snr=False,
+        )
+
+    @property
+    def sample_clip_range(self) -> float | None:
+        """Clip of the clean estimate at every DDIM step: ``[-1, 1]`` in pixel space (``[-2, 2]`` for a residual
+        from the warp hint), none in latent space."""
+        if self.space != "pixel":
+            return None
+        return 2.0 if self.hint_residual else 1.0
+
     @classmethod
     def from_dict(cls, data: dict) -> NVSConfig:
         """Config from ``config.json``; files written before the warp hint existed have ``warp_hint=False``."""
@@ -134,38 +155,6 @@ class ReferenceEncoder(nn.Module):
     def forward(self, image: Tensor) -> Tensor:
         """``[B,C,H,W] -> [B,embed_dim]``."""
         return self.proj(self.features(image).mean(dim=(-2, -1)))
-
-
-def make_train_scheduler(config: NVSConfig) -> DDPMScheduler:
-    """DDPM noise schedule of ``config`` (training)."""
-    return DDPMScheduler(
-        num_train_timesteps=config.num_train_timesteps,
-        beta_start=config.beta_start,
-        beta_end=config.beta_end,
-        beta_schedule=config.beta_schedule,
-        prediction_type=config.prediction_type,
-        clip_sample=False,
-    )
-
-
-def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
-    """Deterministic DDIM (``eta = 0``) on the same schedule; the last step returns the clean estimate.
-
-    Trailing timestep spacing, so the first step is at ``t = T - 1`` (pure noise) whatever the step count
-    (one step returns the conditional-mean estimate). In pixel space the clean estimate is clipped to
-    ``[-1, 1]`` (``[-2, 2]`` for a residual from the warp hint) at every step.
-    """
-    return DDIMScheduler(
-        num_train_timesteps=config.num_train_timesteps,
-        beta_start=config.beta_start,
-        beta_end=config.beta_end,
-        beta_schedule=config.beta_schedule,
-        prediction_type=config.prediction_type,
-        clip_sample=config.space == "pixel",
-        clip_sample_range=2.0 if config.hint_residual else 1.0,
-        set_alpha_to_one=True,
-        timestep_spacing="trailing",
-    )
 
 
 @dataclass
@@ -368,7 +357,7 @@ class NVSModel(nn.Module):
         batch.validate()
         if batch.targets is None:
             raise ValueError("training needs target images")
-        scheduler = scheduler or make_train_scheduler(self.config)
+        scheduler = scheduler or make_ddpm_scheduler(self.config.scheduler)
         b, v = batch.target_w2c.shape[:2]
         device = batch.reference.device
         with torch.no_grad():
@@ -398,58 +387,6 @@ class NVSModel(nn.Module):
         else:
             goal = scheduler.get_velocity(target, noise, t)
         return F.mse_loss(pred, goal)
-
-    # --------------------------------------------------------------- sampling
-    @torch.no_grad()
-    def sample(
-        self,
-        batch: NVSBatch,
-        num_steps: int = 50,
-        guidance_scale: float = 3.0,
-        generator: torch.Generator | None = None,
-    ) -> Tensor:
-        """Generate the target views, ``[B,V,4,H,W]`` RGBA in ``[0, 1]`` at the model's image size.
-
-        One initial noise per object, shared by its views; DDIM (``eta = 0``) with classifier-free guidance
-        ``eps = eps_u + s (eps_c - eps_u)`` where the unconditional branch drops image, reference, rays and
-        warp hint.
-        """
-        batch.validate()
-        if num_steps < 1:
-            raise ValueError(f"num_steps must be >= 1, got {num_steps}")
-        b, v = batch.target_w2c.shape[:2]
-        device = batch.reference.device
-        reference = self.encode(batch.reference)
-        hint = self.warp_hint(batch)
-        base = hint_base(hint) if self.config.hint_residual else 0.0
-        rays, pose = self.conditioning(batch, reference)
-        embedding = self.reference_encoder(reference).repeat_interleave(v, dim=0)
-        ref = reference.repeat_interleave(v, dim=0)
-        n = b * v
-        keep = torch.zeros(n, dtype=torch.bool, device=device)
-        cond = self.context(embedding, pose, keep)
-        guided = guidance_scale != 1.0
-        if guided:
-            uncond = self.context(embedding, pose, ~keep)
-            cond = torch.cat([cond, uncond])
-            ref = torch.cat([ref, torch.zeros_like(ref)])
-            rays = torch.cat([rays, torch.zeros_like(rays)])
-            if hint is not None:
-                hint = torch.cat([hint, torch.zeros_like(hint)])
-        c, h = self.config.model_channels, self.config.model_size
-        x = shared_noise(b, v, (c, h, h), generator=generator, device=device).flatten(0, 1)
-        scheduler = make_sample_scheduler(self.config)
-        scheduler.set_timesteps(num_steps, device=device)
-        for t in scheduler.timesteps:
-            model_in = torch.cat([x, x]) if guided else x
-            ts = t.expand(model_in.shape[0]).to(device)
-            pred = self.denoise(model_in, ts, ref, cond, rays, v, hint)
-            if guided:
-                pred_c, pred_u = pred.chunk(2)
-                pred = pred_u + guidance_scale * (pred_c - pred_u)
-            x = scheduler.step(pred, t, x).prev_sample
-        rgba = self.decode(x + base)
-        return rgba.reshape(b, v, *rgba.shape[1:])
 
     # -------------------------------------------------------------- save/load
     def save(self, folder: str | Path, half: bool = False) -> Path:

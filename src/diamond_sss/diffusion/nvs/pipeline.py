@@ -1,4 +1,5 @@
-"""Novel-view generation for an OLAT data set: reference (view, light) -> target cameras, cached.
+"""Novel-view generation: the in-memory pipeline, and for an OLAT data set reference (view, light) -> target
+cameras, cached.
 
 Outputs in ``out``: ``<name>.png`` (sRGB, premultiplied colour with alpha), ``<name>_mask.png`` (alpha) and
 ``manifest.json``, a list of ``{view, light, image, mask}`` with paths relative to ``out``. Generation is
@@ -23,9 +24,18 @@ from diamond_sss.data.conventions import intrinsics_from_fov, opengl_c2w_to_open
 from diamond_sss.data.images import to_srgb8, write_png
 from diamond_sss.diffusion.common import OutputCache, files_hash
 from diamond_sss.diffusion.common.paths import default_cache_dir, shipped_model_dir
+from diamond_sss.diffusion.common.sampling import PipelineOutput, ddim_sample
+from diamond_sss.diffusion.common.schedulers import make_ddim_scheduler
 from diamond_sss.diffusion.geometry.base import GeometryError, GeometrySource
 from diamond_sss.diffusion.nvs.data import load_rgba_views
-from diamond_sss.diffusion.nvs.model import CONFIG_NAME, NVSBatch, NVSConfig, NVSModel
+from diamond_sss.diffusion.nvs.model import (
+    CONFIG_NAME,
+    NVSBatch,
+    NVSConfig,
+    NVSModel,
+    hint_base,
+    shared_noise,
+)
 from diamond_sss.diffusion.nvs.warp import forward_warp, resize_depth
 from diamond_sss.utils.io import atomic_write_json, sha256_file
 
@@ -35,6 +45,63 @@ MANIFEST = "manifest.json"
 def default_model_dir() -> Path:
     """The novel-view model shipped inside the package (:func:`~diamond_sss.diffusion.common.paths.shipped_model_dir`)."""
     return shipped_model_dir("nvs")
+
+
+class NovelViewPipeline:
+    """In-memory novel-view generation: an :class:`NVSModel` sampled with DDIM (``eta = 0``) and
+    classifier-free guidance ``eps = eps_u + s (eps_c - eps_u)``, whose unconditional branch drops image,
+    reference, rays and warp hint. One initial noise per object, shared by its views."""
+
+    def __init__(self, model: NVSModel) -> None:
+        self.model = model
+
+    @torch.no_grad()
+    def __call__(
+        self,
+        batch: NVSBatch,
+        num_steps: int = 50,
+        guidance_scale: float = 3.0,
+        generator: torch.Generator | None = None,
+        size: int | None = None,
+    ) -> PipelineOutput:
+        """The target views of ``batch``, ``B*V`` images (views of an object contiguous) at the model's image
+        size, or bilinearly resized to ``size``."""
+        model, config = self.model, self.model.config
+        batch.validate()
+        b, v = batch.target_w2c.shape[:2]
+        device = batch.reference.device
+        reference = model.encode(batch.reference)
+        hint = model.warp_hint(batch)
+        base = hint_base(hint) if config.hint_residual else 0.0
+        rays, pose = model.conditioning(batch, reference)
+        embedding = model.reference_encoder(reference).repeat_interleave(v, dim=0)
+        ref = reference.repeat_interleave(v, dim=0)
+        keep = torch.zeros(b * v, dtype=torch.bool, device=device)
+        cond = model.context(embedding, pose, keep)
+        guided = guidance_scale != 1.0
+        if guided:
+            cond = torch.cat([cond, model.context(embedding, pose, ~keep)])
+            ref = torch.cat([ref, torch.zeros_like(ref)])
+            rays = torch.cat([rays, torch.zeros_like(rays)])
+            if hint is not None:
+                hint = torch.cat([hint, torch.zeros_like(hint)])
+
+        def denoise(x: Tensor, timesteps: Tensor) -> Tensor:
+            pred = model.denoise(torch.cat([x, x]) if guided else x,
+                                 torch.cat([timesteps, timesteps]) if guided else timesteps, ref, cond, rays, v, hint)
+            if not guided:
+                return pred
+            pred_c, pred_u = pred.chunk(2)
+            return pred_u + guidance_scale * (pred_c - pred_u)
+
+        shape = (config.model_channels, config.model_size, config.model_size)
+        noise = shared_noise(b, v, shape, generator=generator, device=device).flatten(0, 1)
+        scheduler = make_ddim_scheduler(config.scheduler, config.sample_clip_range)
+        x = ddim_sample(denoise, (b * v, *shape), scheduler, num_steps, device=device, noise=noise)
+        rgba = model.decode(x + base).float().cpu()
+        if size is not None:
+            rgba = F.interpolate(rgba, size=(size, size), mode="bilinear", align_corners=False).clamp(0, 1)
+        return PipelineOutput(rgb=rgba[:, :3].permute(0, 2, 3, 1), alpha=rgba[:, 3:].permute(0, 2, 3, 1))
 
 
 @dataclass
@@ -259,12 +326,8 @@ def generate_novel_views(
             reference_depth=None if depth is None else depth.to(device),
         )
         generator = torch.Generator(device=device).manual_seed(seed)
-        rgba = model.sample(batch, num_steps=steps, guidance_scale=guidance_scale, generator=generator)[0]
-        rgba = F.interpolate(
-            rgba.float().cpu(), size=(cameras.size, cameras.size), mode="bilinear", align_corners=False
-        ).clamp(0, 1)
-        for name, image in zip(cameras.names, rgba):
-            rgb, alpha = image[:3].permute(1, 2, 0), image[3:].permute(1, 2, 0)
+        output = NovelViewPipeline(model)(batch, steps, guidance_scale, generator, size=cameras.size)
+        for name, rgb, alpha in zip(cameras.names, output.rgb, output.alpha):
             write_png(folder / f"{name}.png", to_srgb8(rgb, alpha))
             write_png(folder / f"{name}_mask.png", (alpha[..., 0].numpy() * 255 + 0.5).astype("uint8"))
 

@@ -17,8 +17,9 @@ from diffusers.optimization import get_constant_schedule_with_warmup
 
 from diamond_sss.diffusion.common import EMA
 from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
+from diamond_sss.diffusion.common.schedulers import make_ddpm_scheduler
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch
-from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel, make_train_scheduler
+from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.training.checkpoint import (
     latest_accelerate_checkpoint,
     load_accelerate_checkpoint,
@@ -79,7 +80,7 @@ def finetune(
     raw = accelerator.unwrap_model(model)
     ema = EMA(raw, decay=config.ema_decay)
     accelerator.register_for_checkpointing(ema)
-    noise_schedule = make_train_scheduler(config.model)
+    noise_schedule = make_ddpm_scheduler(config.model.scheduler)
     atomic_write_json(out / "finetune_config.json", asdict(config))
 
     step = 0

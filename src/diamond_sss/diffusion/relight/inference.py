@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from diamond_sss.data.dataset import OLATDataset
@@ -22,9 +21,10 @@ from diamond_sss.data.images import load_rgba, to_srgb8, write_png
 from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.common.paths import default_cache_dir, shipped_model_dir
 from diamond_sss.diffusion.geometry.base import GeometrySource
-from diamond_sss.diffusion.relight.conditioning import conditioning_image, model_to_image
+from diamond_sss.diffusion.relight.conditioning import conditioning_image
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.diffusion.relight.model import CONFIG_NAME, WEIGHTS_NAME, RelightDiffusion
+from diamond_sss.diffusion.relight.pipeline import RelightPipeline
 from diamond_sss.utils.io import atomic_write_json, sha256_file
 
 MANIFEST_NAME = "manifest.json"
@@ -173,35 +173,21 @@ def _generate(
         ) from error
     cond = single.expand(count, -1, -1, -1).to(device)
     shape = model.sample_shape(1)[1:]
-    out = torch.zeros(count, 3, model.config.resolution, model.config.resolution)
     target_codes = codes[lights].to(device)
     source_codes = codes[[source_light] * count].to(device)
     with torch.no_grad():
         fit = model.scattering_fit(single.to(device), source_codes[:1])
         hint = model.hint(cond, target_codes, source_codes, fit=None if fit is None else fit.expand(count))
-    for sample in range(samples):
-        noise = torch.stack(
-            [
-                torch.randn(
-                    shape,
-                    generator=torch.Generator().manual_seed(seed * 100_003 + light + sample * 1_000_003),
-                )
-                for light in lights
-            ]
-        )
-        with torch.no_grad():
-            out += (
-                model.relight(
-                    cond, target_codes, source_codes, num_steps=num_steps, noise=noise, hint=hint
-                )
-                .float()
-                .cpu()
-                / samples
-            )
-    height, width = rgb.shape[:2]
-    if out.shape[-2:] != (height, width):
-        out = F.interpolate(out, size=(height, width), mode="bilinear", align_corners=False)
-    images = model_to_image(out) * (mask > 1e-3)
+    noise = torch.stack([
+        torch.stack([
+            torch.randn(shape, generator=torch.Generator().manual_seed(seed * 100_003 + light + sample * 1_000_003))
+            for light in lights
+        ])
+        for sample in range(samples)
+    ])
+    output = RelightPipeline(model)(cond, target_codes, source_codes, num_steps, noise=noise, hint=hint,
+                                    samples=samples, size=tuple(rgb.shape[:2]))
+    images = output.rgb * (mask > 1e-3)
     for light, image in zip(lights, images):
         cache.put(
             keys[light], lambda folder, image=image: write_png(folder / "image.png", to_srgb8(image, mask))

@@ -19,7 +19,7 @@ from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
 from torch import Tensor, nn
 
 from diamond_sss.diffusion.common.hashing import state_dict_hash
-from diamond_sss.diffusion.common.sampling import ddim_sample, make_ddim_scheduler, make_ddpm_scheduler
+from diamond_sss.diffusion.common.schedulers import make_ddpm_scheduler
 from diamond_sss.diffusion.relight.config import CONDITIONING_CHANNELS, RelightModelConfig
 from diamond_sss.diffusion.relight.hint import ScatteringFit, configured_fit, relit_hint
 from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
@@ -307,39 +307,6 @@ class RelightDiffusion(nn.Module):
             down_block_additional_residuals=down,
             mid_block_additional_residual=mid,
         ).sample
-
-    @torch.no_grad()
-    def relight(
-        self,
-        conditioning: Tensor,
-        target_code: Tensor,
-        source_code: Tensor | None = None,
-        num_steps: int = 20,
-        generator: torch.Generator | None = None,
-        noise: Tensor | None = None,
-        hint: Tensor | None = None,
-    ) -> Tensor:
-        """DDIM (eta 0) sample of the relit image in model space ``[B,3,R,R]`` (the hint added back with
-        ``residual``).
-
-        The initial noise is ``noise`` (shape :meth:`sample_shape`) or drawn from ``generator``; ``hint`` is
-        :meth:`hint` of the same inputs (computed here when not given; pass it when sampling several times).
-        """
-        scheduler = make_ddim_scheduler(self.config.scheduler)
-        device = conditioning.device
-        if hint is None:
-            hint = self.hint(conditioning, target_code, source_code)
-        sample = ddim_sample(
-            lambda x, t: self(x, t, conditioning, target_code, source_code, hint=hint),
-            self.sample_shape(conditioning.shape[0]),
-            scheduler,
-            num_steps,
-            generator,
-            device,
-            noise=noise,
-        )
-        offset = self.offset(hint)
-        return self.decode(sample if offset is None else sample + offset).clamp(-1.0, 1.0)
 
 
 def _public(config: dict) -> dict:
