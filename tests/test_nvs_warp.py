@@ -217,7 +217,7 @@ def test_generation_with_the_warp_hint_needs_metric_depth_and_keys_the_cache_by_
             tmp_path / out,
             0,
             0,
-            "1,2",
+            [1, 2],
             model_dir=model_dir,
             steps=1,
             cache_dir=tmp_path / "cache",

@@ -100,8 +100,8 @@ def nvs(
 ) -> None:
     """Generate novel views of an object under a fixed light from one reference image (Free3D-style model).
 
-    Writes <out>/<name>.png (sRGB, premultiplied, with alpha), <out>/<name>_mask.png and <out>/manifest.json
-    (a list of {view, light, image, mask}); results are cached by model hash and input hash.
+    Writes <out>/images/<name>.png (sRGB, premultiplied, with alpha), <out>/masks/<name>.png and
+    <out>/manifest.json (a list of {view, light, image, mask}); results are cached by model hash and input hash.
 
     Args:
         data: OLAT data folder holding transforms_<split>.json.
@@ -120,15 +120,16 @@ def nvs(
         geometry: metric depth of the reference for models with the warp hint: a reconstruction run folder
             (holding model.safetensors) or 'maps' (depth maps stored with the data).
     """
+    from diamond_sss.data.dataset import OLATDataset
     from diamond_sss.diffusion.geometry import geometry_source
-    from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
+    from diamond_sss.diffusion.nvs.pipeline import generate_novel_views, parse_targets
 
     manifest = generate_novel_views(
         data,
         out,
         view,
         light,
-        targets,
+        parse_targets(targets, OLATDataset(data, split)),
         split=split,
         model_dir=model,
         steps=steps,

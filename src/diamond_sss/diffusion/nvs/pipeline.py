@@ -1,8 +1,8 @@
 """Novel-view generation: the in-memory pipeline, and for an OLAT data set reference (view, light) -> target
 cameras, cached.
 
-Outputs in ``out``: ``<name>.png`` (sRGB, premultiplied colour with alpha), ``<name>_mask.png`` (alpha) and
-``manifest.json``, a list of ``{view, light, image, mask}`` with paths relative to ``out``. Generation is
+Outputs in ``out``: ``images/<name>.png``, ``masks/<name>.png`` and ``manifest.json``
+(:mod:`~diamond_sss.diffusion.common.manifest`; ``<name>`` is ``view_<index>`` or ``pose_<index>``). Generation is
 cached under a key of the model hash and the hash of every input (reference image, cameras, settings, and the
 geometry source that gives a warp-hint model the reference's metric depth).
 """
@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +23,9 @@ from torch import Tensor
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.conventions import intrinsics_from_fov, opengl_c2w_to_opencv_w2c, scale_intrinsics
 from diamond_sss.data.images import to_srgb8, write_png
-from diamond_sss.diffusion.common import OutputCache, files_hash
+from diamond_sss.diffusion.common.cache import OutputCache
+from diamond_sss.diffusion.common.hashing import files_hash
+from diamond_sss.diffusion.common.manifest import GeneratedImage, image_paths, write_image_manifest
 from diamond_sss.diffusion.common.paths import default_cache_dir, shipped_model_dir
 from diamond_sss.diffusion.common.sampling import PipelineOutput, ddim_sample
 from diamond_sss.diffusion.common.schedulers import make_ddim_scheduler
@@ -37,9 +40,7 @@ from diamond_sss.diffusion.nvs.model import (
     shared_noise,
 )
 from diamond_sss.diffusion.nvs.warp import forward_warp, resize_depth
-from diamond_sss.utils.io import atomic_write_json, sha256_file
-
-MANIFEST = "manifest.json"
+from diamond_sss.utils.io import sha256_file
 
 
 def default_model_dir() -> Path:
@@ -114,6 +115,25 @@ class TargetCameras:
     names: list[str]
     size: int
 
+    @classmethod
+    def from_views(cls, dataset: OLATDataset, views: Sequence[int]) -> TargetCameras:
+        """The cameras of lattice views ``views`` of ``dataset`` (named ``view_<index>``)."""
+        views = list(views)
+        if not views:
+            raise ValueError("no target view given")
+        bad = [v for v in views if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < dataset.num_views]
+        if bad:
+            raise ValueError(
+                f"unknown view index {bad} (the {dataset.split} split has views 0..{dataset.num_views - 1})"
+            )
+        return cls(
+            dataset.viewmats[views].double(),
+            dataset.intrinsics[views].double(),
+            views,
+            [f"view_{v:03d}" for v in views],
+            dataset.width,
+        )
+
 
 def _matrix(value, shape: tuple[int, int], where: str) -> Tensor:
     try:
@@ -134,7 +154,6 @@ def parse_targets(targets: str, dataset: OLATDataset) -> TargetCameras:
     [{"transform_matrix": M}, ...]}`` as in ``transforms_*.json``; without a field of view the data set's
     intrinsics are used.
     """
-    size = dataset.width
     text = targets.strip()
     if _is_index_list(text):
         views = json.loads(text)
@@ -149,18 +168,7 @@ def parse_targets(targets: str, dataset: OLATDataset) -> TargetCameras:
             ) from None
     if not views:
         raise ValueError("--targets lists no view")
-    bad = [v for v in views if not 0 <= v < dataset.num_views]
-    if bad:
-        raise ValueError(
-            f"unknown view index {bad} (the {dataset.split} split has views 0..{dataset.num_views - 1})"
-        )
-    return TargetCameras(
-        dataset.viewmats[views].double(),
-        dataset.intrinsics[views].double(),
-        views,
-        [f"view_{v:03d}" for v in views],
-        size,
-    )
+    return TargetCameras.from_views(dataset, views)
 
 
 def _is_index_list(text: str) -> bool:
@@ -183,7 +191,7 @@ def _targets_from_json(text: str, dataset: OLATDataset) -> TargetCameras:
     except json.JSONDecodeError as err:
         raise ValueError(f"malformed pose JSON in {source}: {err}") from None
     if isinstance(data, list) and all(isinstance(v, int) for v in data):
-        return parse_targets(",".join(str(v) for v in data), dataset)
+        return TargetCameras.from_views(dataset, data)
     fov = None
     if isinstance(data, dict):
         if not isinstance(data.get("frames"), list):
@@ -254,7 +262,7 @@ def generate_novel_views(
     out: str | Path,
     view: int,
     light: int,
-    targets: str,
+    targets: Sequence[int] | TargetCameras,
     split: str = "train",
     model_dir: str | Path | None = None,
     steps: int = 1,
@@ -264,7 +272,8 @@ def generate_novel_views(
     device: str = "cpu",
     geometry: GeometrySource | None = None,
 ) -> Path:
-    """Generate the ``targets`` of ``data`` under ``light`` from reference ``view``; returns the manifest.
+    """Generate the ``targets`` (lattice view indices or cameras, see :func:`parse_targets`) of ``data`` under
+    ``light`` from reference ``view``; returns the manifest (:mod:`~diamond_sss.diffusion.common.manifest`).
 
     A model with the warp hint needs ``geometry`` giving the reference's metric depth (stored maps or a
     reconstruction run folder). Deterministic for a seed; a second call with the same model and inputs is
@@ -281,7 +290,10 @@ def generate_novel_views(
         )
     if not bool(dataset.presence[view, light]):
         raise ValueError(f"view {view} was not captured under light {light} in {dataset.json_path}")
-    cameras = parse_targets(targets, dataset)
+    if isinstance(targets, str):
+        raise TypeError(f"targets must be view indices or TargetCameras, got the string {targets!r} (parse_targets "
+                        "reads the command line's form)")
+    cameras = targets if isinstance(targets, TargetCameras) else TargetCameras.from_views(dataset, targets)
     model_dir = Path(model_dir) if model_dir is not None else default_model_dir()
     if not (model_dir / CONFIG_NAME).is_file():
         raise FileNotFoundError(
@@ -332,14 +344,12 @@ def generate_novel_views(
             write_png(folder / f"{name}_mask.png", (alpha[..., 0].numpy() * 255 + 0.5).astype("uint8"))
 
     entry, _ = cache.get_or_create(key, write)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    manifest = []
+    items = []
     for target_view, name in zip(cameras.views, cameras.names):
-        for suffix in (".png", "_mask.png"):
-            shutil.copyfile(entry / f"{name}{suffix}", out / f".{name}{suffix}.tmp")
-            os.replace(out / f".{name}{suffix}.tmp", out / f"{name}{suffix}")
-        manifest.append(
-            {"view": target_view, "light": light, "image": f"{name}.png", "mask": f"{name}_mask.png"}
-        )
-    return atomic_write_json(out / MANIFEST, manifest)
+        item = GeneratedImage(target_view, light, *image_paths(out, name))
+        for cached, path in ((f"{name}.png", item.image), (f"{name}_mask.png", item.mask)):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(entry / cached, path.with_name(f".{path.name}.tmp"))
+            os.replace(path.with_name(f".{path.name}.tmp"), path)
+        items.append(item)
+    return write_image_manifest(out, items)

@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 from diffusers.optimization import get_constant_schedule_with_warmup
 
-from diamond_sss.diffusion.common import EMA
+from diamond_sss.diffusion.common.ema import EMA
 from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
 from diamond_sss.diffusion.common.schedulers import make_ddpm_scheduler
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch

@@ -19,15 +19,14 @@ from torch import Tensor
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.images import load_rgba, to_srgb8, write_png
 from diamond_sss.diffusion.common.cache import OutputCache
+from diamond_sss.diffusion.common.manifest import GeneratedImage, image_paths, write_image_manifest
 from diamond_sss.diffusion.common.paths import default_cache_dir, shipped_model_dir
 from diamond_sss.diffusion.geometry.base import GeometrySource
 from diamond_sss.diffusion.relight.conditioning import conditioning_image
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.diffusion.relight.model import CONFIG_NAME, WEIGHTS_NAME, RelightDiffusion
 from diamond_sss.diffusion.relight.pipeline import RelightPipeline
-from diamond_sss.utils.io import atomic_write_json, sha256_file
-
-MANIFEST_NAME = "manifest.json"
+from diamond_sss.utils.io import sha256_file
 
 
 @dataclass
@@ -195,15 +194,12 @@ def _generate(
 
 
 def write_relit(out: str | os.PathLike, results: list[RelitImage]) -> Path:
-    """Write ``images/`` and ``masks/`` PNGs and ``manifest.json`` (``{view, light, image, mask}`` with paths
-    relative to ``out``); returns the manifest path."""
-    out = Path(out)
-    manifest = []
+    """Write the images as ``v<view>_l<light>`` with ``manifest.json`` into ``out``
+    (:mod:`~diamond_sss.diffusion.common.manifest`); returns the manifest path."""
+    items = []
     for item in results:
-        name = f"v{item.view:03d}_l{item.light:03d}.png"
-        write_png(out / "images" / name, to_srgb8(item.rgb, item.mask))
-        write_png(out / "masks" / name, (item.mask[..., 0].numpy() * 255.0 + 0.5).astype("uint8"))
-        manifest.append(
-            {"view": item.view, "light": item.light, "image": f"images/{name}", "mask": f"masks/{name}"}
-        )
-    return atomic_write_json(out / MANIFEST_NAME, manifest)
+        written = GeneratedImage(item.view, item.light, *image_paths(out, f"v{item.view:03d}_l{item.light:03d}"))
+        write_png(written.image, to_srgb8(item.rgb, item.mask))
+        write_png(written.mask, (item.mask[..., 0].numpy() * 255.0 + 0.5).astype("uint8"))
+        items.append(written)
+    return write_image_manifest(out, items)
