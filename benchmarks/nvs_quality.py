@@ -28,7 +28,7 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.data.images import load_rgba
 from diamond_sss.diffusion.common.manifest import read_image_manifest
 from diamond_sss.diffusion.geometry import GeometrySource, geometry_source
-from diamond_sss.diffusion.nvs.model import CONFIG_NAME, NVSConfig
+from diamond_sss.diffusion.nvs.model import NVSModel
 from diamond_sss.diffusion.nvs.pipeline import (
     TargetCameras,
     default_model_dir,
@@ -115,7 +115,7 @@ def evaluate_object(
         images = [load_rgba(item.image) for item in read_image_manifest(manifest)]
         predictions[f"nvs-{count}-steps"] = images
         print(f"{data.name}: nvs ({count} steps) {time.perf_counter() - started:.1f} s")
-    config = NVSConfig.from_dict(json.loads((model / CONFIG_NAME).read_text()))
+    config = NVSModel.read_config(model)
     cameras = TargetCameras.from_views(dataset, targets)
     warped = warp_reference_views(dataset, view, light, cameras, geometry, config).clamp(0, 1)
     predictions["warp-hint"] = [(w[:3].permute(1, 2, 0), w[3:].permute(1, 2, 0)) for w in warped]

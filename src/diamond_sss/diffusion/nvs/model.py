@@ -12,7 +12,6 @@ sample at sampling time. Space: ``pixel`` (RGBA in ``[-1, 1]``, the small offlin
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -22,15 +21,14 @@ from diffusers import AutoencoderKL, DDPMScheduler, UNet2DConditionModel
 from torch import Tensor, nn
 
 from diamond_sss.data.conventions import scale_intrinsics
+from diamond_sss.diffusion.common.model_io import CONFIG_NAME, load_weights, read_model_config, save_model
 from diamond_sss.diffusion.common.schedulers import SchedulerConfig, make_ddpm_scheduler
 from diamond_sss.diffusion.nvs.layers import ConditioningSlot, graft_free3d_layers, set_layer_checkpointing
 from diamond_sss.diffusion.nvs.rays import RELATIVE_POSE_CHANNELS, ray_embedding, relative_spherical_pose
 from diamond_sss.diffusion.nvs.warp import WARP_CHANNELS, forward_warp, resize_depth
 from diamond_sss.utils import rng
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
 
-CONFIG_NAME = "config.json"
-WEIGHTS_NAME = "model.safetensors"
+MODEL_KIND = "nvs"
 
 
 @dataclass
@@ -390,34 +388,25 @@ class NVSModel(nn.Module):
 
     # -------------------------------------------------------------- save/load
     def save(self, folder: str | Path, half: bool = False) -> Path:
-        """Write ``config.json`` and ``model.safetensors`` (without the VAE; floats in fp16 with ``half``)
-        atomically into ``folder``."""
-        folder = Path(folder)
-        tensors = {
-            k: (v.half() if half and v.is_floating_point() else v).detach().cpu().contiguous()
-            for k, v in self.state_dict().items()
-            if not k.startswith("vae.")
-        }
-        atomic_save_safetensors(folder / WEIGHTS_NAME, tensors)
-        atomic_write_json(folder / CONFIG_NAME, asdict(self.config))
-        return folder
+        """Write the model (without the VAE; floats in fp16 with ``half``) into ``folder``
+        (:mod:`~diamond_sss.diffusion.common.model_io`)."""
+        state = {k: v for k, v in self.state_dict().items() if not k.startswith("vae.")}
+        return save_model(folder, MODEL_KIND, asdict(self.config), state, half=half)
+
+    @staticmethod
+    def read_config(folder: str | Path) -> NVSConfig:
+        """The config of the model in ``folder`` (either ``config.json`` layout)."""
+        config, _ = read_model_config(folder, MODEL_KIND, lambda flat: {"config": flat})
+        try:
+            return NVSConfig.from_dict(config)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{Path(folder) / CONFIG_NAME}: {error}") from error
 
     @classmethod
     def load(cls, folder: str | Path, vae: AutoencoderKL | None = None) -> NVSModel:
         """Load a model written by :meth:`save`."""
-        folder = Path(folder)
-        for name in (CONFIG_NAME, WEIGHTS_NAME):
-            if not (folder / name).is_file():
-                raise FileNotFoundError(f"NVS model folder {folder} has no {name}")
-        config = NVSConfig.from_dict(json.loads((folder / CONFIG_NAME).read_text()))
-        model = cls(config, vae=vae)
-        state = {k: v.float() if v.is_floating_point() else v for k, v in load_safetensors(folder / WEIGHTS_NAME).items()}
-        missing, unexpected = model.load_state_dict(state, strict=False)
-        missing = [k for k in missing if not k.startswith("vae.")]
-        if missing or unexpected:
-            raise ValueError(
-                f"{folder / WEIGHTS_NAME}: missing keys {missing[:5]}, unexpected {unexpected[:5]}"
-            )
+        model = cls(cls.read_config(folder), vae=vae)
+        load_weights(model, folder, skip_prefix="vae.")
         return model.eval()
 
 

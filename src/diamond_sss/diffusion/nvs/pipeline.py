@@ -32,7 +32,6 @@ from diamond_sss.diffusion.common.schedulers import make_ddim_scheduler
 from diamond_sss.diffusion.geometry.base import GeometryError, GeometrySource
 from diamond_sss.diffusion.nvs.data import load_rgba_views
 from diamond_sss.diffusion.nvs.model import (
-    CONFIG_NAME,
     NVSBatch,
     NVSConfig,
     NVSModel,
@@ -295,11 +294,7 @@ def generate_novel_views(
                         "reads the command line's form)")
     cameras = targets if isinstance(targets, TargetCameras) else TargetCameras.from_views(dataset, targets)
     model_dir = Path(model_dir) if model_dir is not None else default_model_dir()
-    if not (model_dir / CONFIG_NAME).is_file():
-        raise FileNotFoundError(
-            f"no novel-view model in {model_dir} (expected {CONFIG_NAME} and model.safetensors)"
-        )
-    config = NVSConfig.from_dict(json.loads((model_dir / CONFIG_NAME).read_text()))
+    config = NVSModel.read_config(model_dir)
     if config.warp_hint and geometry is None:
         raise GeometryError(
             f"the novel-view model in {model_dir} uses the warp hint and needs the reference's metric depth: "

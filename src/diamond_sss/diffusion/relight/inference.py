@@ -20,11 +20,12 @@ from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.images import load_rgba, to_srgb8, write_png
 from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.common.manifest import GeneratedImage, image_paths, write_image_manifest
+from diamond_sss.diffusion.common.model_io import CONFIG_NAME, WEIGHTS_NAME
 from diamond_sss.diffusion.common.paths import default_cache_dir, shipped_model_dir
 from diamond_sss.diffusion.geometry.base import GeometrySource
 from diamond_sss.diffusion.relight.conditioning import conditioning_image
 from diamond_sss.diffusion.relight.light import light_code
-from diamond_sss.diffusion.relight.model import CONFIG_NAME, WEIGHTS_NAME, RelightDiffusion
+from diamond_sss.diffusion.relight.model import RelightDiffusion
 from diamond_sss.diffusion.relight.pipeline import RelightPipeline
 from diamond_sss.utils.io import sha256_file
 
