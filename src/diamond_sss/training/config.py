@@ -62,7 +62,9 @@ class TrainConfig:
     # shading
     sss_width: int = 32
     random_background: bool = False
-    # loss weights (Eq. A.1-A.7, Tab. 3)
+    # loss weights (Eq. A.1-A.7, Tab. 3); photometric_space: where L1 / D-SSIM compare images, "linear"
+    # radiance or "srgb" (the space of the metrics, which weighs dark regions as the eye and PSNR do)
+    photometric_space: str = "linear"
     lambda_dssim: float = 0.492
     lambda_lpips: float = 0.171
     lambda_mask: float = 0.1
@@ -264,6 +266,8 @@ def validate_config(config: TrainConfig) -> None:
             raise ValueError(f"config key '{f.name}' must be >= 0, got {value}")
     if config.init not in ("auto", "ply", "hull", "random"):
         raise ValueError(f"config key 'init' must be auto|ply|hull|random, got '{config.init}'")
+    if config.photometric_space not in ("linear", "srgb"):
+        raise ValueError(f"config key 'photometric_space' must be linear|srgb, got '{config.photometric_space}'")
     if config.mv_target_mode not in ("nearest-k", "random"):
         raise ValueError(f"config key 'mv_target_mode' must be nearest-k|random, got '{config.mv_target_mode}'")
     if config.device not in ("auto", "cpu", "cuda") and not config.device.startswith("cuda:"):
