@@ -262,7 +262,7 @@ def validate_config(config: TrainConfig) -> None:
             raise ValueError(f"config key '{key}' must be positive, got {getattr(config, key)}")
     for f in fields(config):
         value = getattr(config, f.name)
-        if f.name.startswith("lambda_") and value < 0:
+        if (f.name.startswith("lambda_") or f.name == "synthetic_weight") and not value >= 0:
             raise ValueError(f"config key '{f.name}' must be >= 0, got {value}")
     if config.init not in ("auto", "ply", "hull", "random"):
         raise ValueError(f"config key 'init' must be auto|ply|hull|random, got '{config.init}'")
