@@ -13,7 +13,7 @@ import torch
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.gaussians.model import nearest_neighbor_scales
-from diamond_sss.training.checkpoint import latest_checkpoint
+from diamond_sss.training.checkpoint import checkpoint_folders
 from diamond_sss.training.config import make_config
 from diamond_sss.training.loss_log import LossLog
 from diamond_sss.training.trainer import ImageSource, Trainer
@@ -110,7 +110,7 @@ def test_training_stops_at_a_non_finite_loss_and_keeps_the_last_good_checkpoint(
     trainer = _NaNTrainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False)
     with pytest.raises(FloatingPointError, match=r"step 3: mask"):
         trainer.run()
-    assert latest_checkpoint(tmp_path / "run").name.endswith("2")
+    assert checkpoint_folders(tmp_path / "run")[0].name.endswith("2")
     assert not (tmp_path / "run" / "model.safetensors").exists()
 
 

@@ -14,7 +14,7 @@ replaced atomically, so a kill at any moment leaves the previous checkpoint usab
 
 from __future__ import annotations
 
-import json
+import logging
 import os
 import shutil
 import tempfile
@@ -24,7 +24,16 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
+from diamond_sss.errors import DamagedFileError, DataError
+from diamond_sss.utils.io import (
+    atomic_save_safetensors,
+    atomic_write_json,
+    default_mode,
+    load_safetensors,
+    read_json,
+)
+
+logger = logging.getLogger(__name__)
 
 KEEP_CHECKPOINTS = 2
 
@@ -76,6 +85,7 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
     root.mkdir(parents=True, exist_ok=True)
     name = f"step_{step:07d}"
     tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=root))
+    os.chmod(tmp, default_mode(directory=True))
     try:
         atomic_save_safetensors(tmp / "scene.safetensors", scene_tensors)
         optim_tensors: dict[str, Tensor] = {}
@@ -104,22 +114,55 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
     return final
 
 
-def latest_checkpoint(run_dir: Path) -> Path | None:
-    """Folder of the newest complete checkpoint, or None."""
-    pointer = Path(run_dir) / "checkpoints" / "latest.json"
-    if not pointer.is_file():
-        return None
-    folder = pointer.parent / json.loads(pointer.read_text())["dir"]
-    return folder if (folder / "state.json").is_file() else None
+def checkpoint_folders(run_dir: Path) -> list[Path]:
+    """Checkpoint folders of a run, newest first (the one ``latest.json`` names first when it reads)."""
+    root = Path(run_dir) / "checkpoints"
+    folders = sorted((p for p in root.glob("step_*") if p.is_dir()), reverse=True)
+    pointer = root / "latest.json"
+    if pointer.is_file():
+        try:
+            named = root / str(read_json(pointer)["dir"])
+        except (DataError, KeyError, TypeError) as exc:
+            logger.warning("%s is damaged (%s): looking for checkpoint folders instead", pointer, exc)
+        else:
+            folders.sort(key=lambda folder: folder != named)
+    return folders
+
+
+def resume_checkpoint(run_dir: Path) -> tuple[Path, Checkpoint] | None:
+    """The newest checkpoint that loads, with its folder; None when there is none.
+
+    A damaged newer checkpoint is skipped with a warning naming the bad file and the one resumed from.
+    Raises :class:`DamagedFileError` when every checkpoint is damaged.
+    """
+    damaged: list[str] = []
+    for folder in checkpoint_folders(run_dir):
+        try:
+            loaded = load_checkpoint(folder)
+        except DataError as exc:
+            logger.warning("checkpoint %s is damaged: %s", folder.name, exc)
+            damaged.append(str(exc))
+            continue
+        if damaged:
+            logger.warning("resuming from %s, the newest intact checkpoint", folder)
+        return folder, loaded
+    if damaged:
+        raise DamagedFileError(f"{Path(run_dir) / 'checkpoints'}: no intact checkpoint ({'; '.join(damaged)})")
+    return None
 
 
 def load_checkpoint(folder: Path) -> Checkpoint:
-    """Read a checkpoint folder written by :func:`save_checkpoint`."""
-    meta = json.loads((folder / "state.json").read_text())
+    """Read a checkpoint folder written by :func:`save_checkpoint`; damaged files raise naming the file."""
+    state_path = folder / "state.json"
+    meta = read_json(state_path)
+    try:
+        step, optim_meta = int(meta["step"]), meta["optimizers"]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DamagedFileError(f"{state_path}: expected 'step' and 'optimizers' ({exc!r})") from exc
     optim_tensors = load_safetensors(folder / "optim.safetensors")
-    optimizers = {name: optimizer_from_tensors(name, optim_tensors, m) for name, m in meta["optimizers"].items()}
+    optimizers = {name: optimizer_from_tensors(name, optim_tensors, m) for name, m in optim_meta.items()}
     strategy = dict(meta.get("strategy", {}))
     if (folder / "strategy.safetensors").is_file():
         strategy.update(load_safetensors(folder / "strategy.safetensors"))
-    return Checkpoint(step=int(meta["step"]), scene=load_safetensors(folder / "scene.safetensors"),
+    return Checkpoint(step=step, scene=load_safetensors(folder / "scene.safetensors"),
                       optimizers=optimizers, strategy=strategy, extra=meta.get("extra", {}))

@@ -1,15 +1,11 @@
-"""``diamond-sss synth``: render a synthetic translucent OLAT capture with Mitsuba 3."""
+"""``diamond-sss synth``: render a synthetic translucent OLAT capture with Mitsuba 3.
+
+The renderer (torch, Mitsuba) is imported when the command runs, so ``diamond-sss --help`` stays fast.
+"""
 
 from __future__ import annotations
 
 import pathlib
-
-from tqdm import tqdm
-
-from diamond_sss.synth.materials import get_material
-from diamond_sss.synth.render import SynthConfig, plan_pairs, synthesize
-from diamond_sss.synth.scene import LightStageConfig
-from diamond_sss.synth.shapes import shape_names
 
 
 def synth(
@@ -58,6 +54,13 @@ def synth(
             capture measures its noise ceiling: see benchmarks/quality.py).
         train: Render the training lattice (--no-train: only the test split).
     """
+    from tqdm import tqdm
+
+    from diamond_sss.synth.materials import get_material
+    from diamond_sss.synth.render import SynthConfig, plan_pairs, synthesize
+    from diamond_sss.synth.scene import LightStageConfig
+    from diamond_sss.synth.shapes import shape_names
+
     if shape not in shape_names():
         raise ValueError(f"unknown shape {shape!r}; valid shapes: {', '.join(shape_names())}")
     get_material(material)
@@ -88,8 +91,3 @@ def synth(
     with tqdm(total=total, desc=f"synth {shape}/{material}", unit="img") as bar:
         synthesize(config, on_image=bar.update)
 
-
-if __name__ == "__main__":
-    import tyro
-
-    tyro.cli(synth)
