@@ -10,7 +10,7 @@ warp-hint model sees it, upsampled to the image size). The model and the hint ta
 depth from ``--geometry`` (default: the depth maps stored with the data, so render them).
 Writes benchmarks/results/nvs_quality/{nvs_quality.json, nvs_quality.md}.
 
-    python -m diamond_sss.synth.cli --shape torus --material marble --seed 21 --out /tmp/nvs/torus \\
+    python -m diamond_sss.cli.main synth --shape torus --material marble --seed 21 --out /tmp/nvs/torus \\
         --views 12 --lights 1 --size 64 --spp 32 --test-views 0 --test-lights 0
     python benchmarks/nvs_quality.py --data /tmp/nvs/torus /tmp/nvs/bunny --baseline-iterations 150
 """

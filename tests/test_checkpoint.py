@@ -7,9 +7,9 @@ import torch
 
 from diamond_sss.diffusion.common.runtime import make_accelerator
 from diamond_sss.training.checkpoint import (
+    checkpoint_folders,
     latest_accelerate_checkpoint,
-    latest_checkpoint,
-    load_checkpoint,
+    resume_checkpoint,
     save_accelerate_checkpoint,
     save_checkpoint,
     step_folder_name,
@@ -38,15 +38,16 @@ def test_an_old_seven_digit_trainer_checkpoint_resumes_and_is_pruned_by_step(tmp
     for step in (4, 5):
         old = _rename_to_seven_digits(_save(tmp_path, step))
     (tmp_path / "checkpoints" / "latest.json").write_text(json.dumps({"step": 5, "dir": old.name}))
-    found = latest_checkpoint(tmp_path)
+    found, loaded = resume_checkpoint(tmp_path)
     assert found.name == "step_0000005"
-    loaded = load_checkpoint(found)
     assert loaded.step == 5 and loaded.extra == {"note": 5}
     assert torch.equal(loaded.scene["w"], torch.full((2,), 5.0) - 0.1)
     _save(tmp_path, 6)
     names = sorted(p.name for p in (tmp_path / "checkpoints").iterdir() if p.is_dir())
     assert names == ["step_00000006", "step_0000005"]
-    assert latest_checkpoint(tmp_path).name == "step_00000006"
+    (tmp_path / "checkpoints" / "latest.json").unlink()  # without the pointer: newest step first
+    assert [p.name for p in checkpoint_folders(tmp_path)] == ["step_00000006", "step_0000005"]
+    assert resume_checkpoint(tmp_path)[0].name == "step_00000006"
 
 
 def test_accelerate_checkpoints_of_both_paddings_are_ordered_by_step(tmp_path):

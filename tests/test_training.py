@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import stat
 
 import pytest
 import torch
@@ -151,6 +153,20 @@ def test_densification_changes_the_gaussian_count(capture, tmp_path):
 
 
 def test_cli_train_eval_render_export(capture, tmp_path, capsys):
+    previous_umask = os.umask(0o027)
+    try:
+        _train_eval_render_export(capture, tmp_path, capsys)
+    finally:
+        os.umask(previous_umask)
+    files = [p for p in tmp_path.rglob("*") if p.is_file()]
+    folders = [p for p in tmp_path.rglob("*") if p.is_dir()]
+    assert {p.suffix for p in files} >= {".json", ".safetensors", ".png", ".gif", ".ply", ".csv"}
+    assert {p.relative_to(tmp_path).as_posix(): oct(stat.S_IMODE(p.stat().st_mode)) for p in files
+            if stat.S_IMODE(p.stat().st_mode) != 0o640} == {}
+    assert {p.relative_to(tmp_path).as_posix() for p in folders if stat.S_IMODE(p.stat().st_mode) != 0o750} == set()
+
+
+def _train_eval_render_export(capture, tmp_path, capsys):
     run = tmp_path / "run"
     sets = [arg for key, value in TINY.items() for arg in ("--set", f"{key}={value}")]
     main(["train", "--data", str(capture), "--out", str(run), "--regime", "views=50%,lights=all",

@@ -16,17 +16,15 @@ from diamond_sss.cli.tune_commands import tune
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.evaluation.evaluate import evaluate_scene
-from diamond_sss.training.config import PRESETS, field_types, make_config
+from diamond_sss.training.config import PRESETS, SCHEDULE_KEYS, field_types, make_config, scale_schedule
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.tuning import objective as objective_module
 from diamond_sss.tuning.objective import Objective, ObjectiveSettings
 from diamond_sss.tuning.report import comparison_table
 from diamond_sss.tuning.space import (
-    SCHEDULE_KEYS,
     SEARCH_SPACE,
     distributions,
     preset_params,
-    scale_schedule,
     suggest_params,
 )
 from diamond_sss.tuning.study import StudySettings, budget_used, make_storage, open_study, run_worker

@@ -117,3 +117,49 @@ def test_server_builds_its_gui_and_follows_it():
         assert viewer.refresh() == 0  # no browser connected: nothing to render
     finally:
         server.stop()
+
+
+def test_loopback_hosts_and_urls():
+    from diamond_sss.viewer.server import is_loopback, viewer_url
+
+    assert is_loopback("127.0.0.1") and is_loopback("localhost") and is_loopback("::1")
+    assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.4") and not is_loopback("example.org")
+    assert viewer_url("127.0.0.1", 8080) == "http://127.0.0.1:8080"
+    assert viewer_url("::1", 9000) == "http://[::1]:9000"
+
+
+@pytest.mark.parametrize("host, warned", [(None, False), ("0.0.0.0", True)])
+def test_serve_binds_loopback_by_default_and_warns_when_exposed(monkeypatch, capsys, caplog, host, warned):
+    pytest.importorskip("viser")
+    from diamond_sss.training import trainer
+    from diamond_sss.viewer import server as server_module
+
+    bound = {}
+
+    class FakeServer:
+        def __init__(self, host, port):
+            bound["host"] = host
+
+        def get_port(self):
+            return 8123
+
+        def stop(self):
+            bound["stopped"] = True
+
+    class InterruptedViewer:
+        def __init__(self, *args):
+            pass
+
+        def refresh(self):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(trainer, "load_scene", lambda run, device: (small_scene(), None))
+    monkeypatch.setattr(server_module.viser, "ViserServer", FakeServer)
+    monkeypatch.setattr(server_module, "SceneViewer", InterruptedViewer)
+    kwargs = {} if host is None else {"host": host}
+    server_module.serve("run", device="cpu", **kwargs)
+    expected = host or "127.0.0.1"
+    assert bound == {"host": expected, "stopped": True}
+    assert f"http://{expected}:8123" in capsys.readouterr().out
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert bool(warnings) == warned and all("0.0.0.0" in w for w in warnings)

@@ -12,12 +12,14 @@ from rich.console import Console
 from rich.table import Table
 
 SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
-                  tyro.conf.arg(name="set", help="override a config key: --set key=value (repeatable)")]
+                  tyro.conf.arg(name="set", help="override a config key: --set key=value (every key, its "
+                                                 "default and meaning: diamond-sss config)")]
 
 
 def train(data: Path, out: Path, split: str = "train", regime: str = "all", preset: str = "diamond",
-          iterations: int | None = None, config: Path | None = None, set_: SetArg = [],  # noqa: B006
-          seed: int = 0, resume: bool = False, device: str = "auto", quiet: bool = False) -> None:
+          iterations: int | None = None, keep_schedule: bool = False, config: Path | None = None,
+          set_: SetArg = [], seed: int = 0, resume: bool = False, device: str = "auto",  # noqa: B006
+          quiet: bool = False) -> None:
     """Reconstruct a relightable translucent object from an OLAT data set (SSS-3DGS backbone).
 
     Args:
@@ -26,22 +28,54 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
         split: training split.
         regime: capture regime: all | all-views-1-light | views=5%,lights=5% | views=5,lights=6 | images=10.
         preset: hyperparameter preset: diamond (Tab. 3, with multi-view losses) or sss3dgs (Tab. 4 original).
-        iterations: training steps (overrides the preset).
+        iterations: training steps; the preset's (and --config's) step-valued keys (densification
+            start, stop and interval, opacity reset, learning rate schedule, checkpoint and log intervals)
+            are scaled by iterations / the preset's iterations.
+        keep_schedule: with --iterations, keep the preset's step-valued keys as they are.
         config: JSON file of config keys (e.g. the best configuration written by `diamond-sss tune`).
         seed: seed of the regime selection, initialisation and every random draw.
         resume: continue from the newest checkpoint in --out.
         device: auto | cpu | cuda.
         quiet: no progress bar.
     """
+    from diamond_sss.training.config import scaled_run_schedule
     from diamond_sss.training.run import train_run
 
-    overrides = {"seed": seed, "device": device}
-    if iterations is not None:
+    console = Console()
+    overrides: dict = {"seed": seed, "device": device}
+    if iterations is not None and keep_schedule:
         overrides["iterations"] = iterations
+    elif iterations is not None:
+        scaled, changes = scaled_run_schedule(preset, iterations, config_file=config, sets=set_)
+        overrides.update(scaled)
+        listed = ", ".join(f"{key} {old}->{new}" for key, (old, new) in changes.items())
+        console.print(f"schedule scaled to {iterations} steps (--keep-schedule keeps the preset's): "
+                      f"{listed or 'no change'}")
     result = train_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides,
                        config_file=config, sets=set_, resume=resume, show_progress=not quiet)
-    Console().print(f"trained {result.steps} steps in {result.seconds:.1f} s, {result.num_gaussians} Gaussians, "
-                    f"final loss {result.final_loss:.4f} -> {out / 'model.safetensors'}")
+    console.print(f"trained {result.steps} steps in {result.seconds:.1f} s, {result.num_gaussians} Gaussians, "
+                  f"final loss {result.final_loss:.4f} -> {out / 'model.safetensors'}")
+
+
+def config(preset: str = "diamond", json: bool = False) -> None:
+    """List every config key (for --set and --config) with its value under --preset and its meaning.
+
+    Args:
+        preset: hyperparameter preset whose values to show: diamond or sss3dgs.
+        json: print a JSON object of key -> value instead of a table.
+    """
+    from diamond_sss.training.config import describe_config
+
+    rows = describe_config(preset)
+    if json:
+        print(json_module.dumps({key: value for key, value, _ in rows}, indent=2))
+        return
+    table = Table(title=f"config keys, preset '{preset}' (change with --set key=value)")
+    for column in ("key", "value", "meaning"):
+        table.add_column(column)
+    for key, value, meaning in rows:
+        table.add_row(key, str(value), meaning)
+    Console(soft_wrap=True).print(table)
 
 
 def evaluate(run: Path, data: Path, split: str = "test", json: bool = False, lpips_weights: str | None = None,
@@ -133,13 +167,13 @@ def export(run: Path, ply: Path) -> None:
     Console().print(f"{scene.gaussians.num_gaussians} Gaussians -> {ply}")
 
 
-def view(run: Path, port: int = 8080, host: str = "0.0.0.0", resolution: int = 256, device: str = "auto") -> None:
+def view(run: Path, port: int = 8080, host: str = "127.0.0.1", resolution: int = 256, device: str = "auto") -> None:
     """Open a trained scene in the web viewer (viser): orbit it, move the light, show maps, edit materials.
 
     Args:
         run: training run folder.
-        port: port of the web server (open http://localhost:PORT in a browser).
-        host: interface to listen on.
+        port: port of the web server (open the printed URL in a browser).
+        host: interface to listen on (default loopback only; 0.0.0.0 exposes the viewer to the network).
         resolution: initial image height of the rendered frames (pixels; a slider changes it).
         device: auto | cpu | cuda.
     """

@@ -9,7 +9,7 @@ import tyro
 from rich.console import Console
 
 SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
-                  tyro.conf.arg(name="set", help="fix a config key of all trials: --set key=value")]
+                  tyro.conf.arg(name="set", help="fix a config key of all trials: --set key=value (keys: diamond-sss config)")]
 
 
 def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: str | None = None,

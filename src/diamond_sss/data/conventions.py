@@ -89,14 +89,15 @@ def intrinsics_from_fov(fov_x: float | None, width: int, height: int, fov_y: flo
     return intrinsics_matrix(fx, fy, 0.5 * width, 0.5 * height)
 
 
-def scale_intrinsics(K: Tensor, factor: float) -> Tensor:
-    """Intrinsics of an image resized by ``factor`` (``0.5`` halves both sides). ``[...,3,3]``.
+def scale_intrinsics(K: Tensor, factor: float, factor_y: float | None = None) -> Tensor:
+    """Intrinsics of an image resized by ``factor`` (``0.5`` halves both sides; ``factor_y``, when given,
+    scales the height). ``[...,3,3]``.
 
     With pixel centres at ``+0.5``, resizing maps continuous coordinates by a pure scale.
     """
     out = K.clone()
     out[..., 0, :] *= factor
-    out[..., 1, :] *= factor
+    out[..., 1, :] *= factor if factor_y is None else factor_y
     out[..., 2, :] = K[..., 2, :]
     return out
 

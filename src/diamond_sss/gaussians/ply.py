@@ -15,8 +15,6 @@ Gaussians: one ``vertex`` element, float32 properties, binary little-endian:
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -27,6 +25,7 @@ from torch import Tensor
 
 from diamond_sss.data.conventions import srgb_to_linear
 from diamond_sss.gaussians.model import GAUSSIAN_PARAMS, SH_C0, GaussianModel
+from diamond_sss.utils.io import atomic_write
 
 NUM_F_REST = 45
 """Degree-3 colour SH of standard 3DGS files minus the DC band: 15 coefficients x 3 channels."""
@@ -107,7 +106,6 @@ def base_color_to_sh_dc(base_color: torch.Tensor) -> torch.Tensor:
 def export_ply(model: GaussianModel, path: str | Path) -> Path:
     """Write ``model`` to ``path`` atomically (temporary file in the same folder, then ``os.replace``)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     state = model.state_tensors()
     columns: dict[str, np.ndarray] = {}
     for key, names in _RAW_FIELDS.items():
@@ -126,16 +124,7 @@ def export_ply(model: GaussianModel, path: str | Path) -> Path:
         vertices[name] = columns[name]
     ply = PlyData([PlyElement.describe(vertices, "vertex")], text=False, byte_order="<")
 
-    handle, temp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            ply.write(stream)
-        os.chmod(temp_name, 0o644)
-        os.replace(temp_name, path)
-    except BaseException:
-        Path(temp_name).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write(path, lambda tmp: ply.write(str(tmp)))
 
 
 def import_ply(path: str | Path, requires_grad: bool = True) -> GaussianModel:

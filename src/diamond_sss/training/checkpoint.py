@@ -18,7 +18,7 @@ replaced atomically), so a kill at any moment leaves the previous checkpoint usa
 
 from __future__ import annotations
 
-import json
+import logging
 import os
 import re
 import shutil
@@ -30,7 +30,16 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
+from diamond_sss.errors import DamagedFileError, DataError
+from diamond_sss.utils.io import (
+    atomic_save_safetensors,
+    atomic_write_json,
+    default_mode,
+    load_safetensors,
+    read_json,
+)
+
+logger = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from accelerate import Accelerator
@@ -44,12 +53,13 @@ def step_folder_name(step: int) -> str:
     return f"step_{step:08d}"
 
 
-def _checkpoints(root: Path, marker: str) -> list[Path]:
-    """``step_<N>`` folders under ``root`` holding ``marker``, oldest first by ``N`` (any zero padding)."""
+def _checkpoints(root: Path, marker: str | None = None) -> list[Path]:
+    """``step_<N>`` folders under ``root`` (holding ``marker`` when given), oldest first by ``N`` (any zero
+    padding)."""
     if not root.is_dir():
         return []
     found = [(int(m.group(1)), p) for p in root.iterdir() if p.is_dir() and (m := _STEP_DIR.match(p.name))]
-    return [p for _, p in sorted(found) if (p / marker).is_file()]
+    return [p for _, p in sorted(found) if marker is None or (p / marker).is_file()]
 
 
 @dataclass
@@ -99,6 +109,7 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
     root.mkdir(parents=True, exist_ok=True)
     name = step_folder_name(step)
     tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=root))
+    os.chmod(tmp, default_mode(directory=True))
     try:
         atomic_save_safetensors(tmp / "scene.safetensors", scene_tensors)
         optim_tensors: dict[str, Tensor] = {}
@@ -127,24 +138,57 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
     return final
 
 
-def latest_checkpoint(run_dir: Path) -> Path | None:
-    """Folder of the newest complete checkpoint, or None."""
-    pointer = Path(run_dir) / "checkpoints" / "latest.json"
-    if not pointer.is_file():
-        return None
-    folder = pointer.parent / json.loads(pointer.read_text())["dir"]
-    return folder if (folder / "state.json").is_file() else None
+def checkpoint_folders(run_dir: Path) -> list[Path]:
+    """Checkpoint folders of a run, newest first (the one ``latest.json`` names first when it reads)."""
+    root = Path(run_dir) / "checkpoints"
+    folders = _checkpoints(root)[::-1]
+    pointer = root / "latest.json"
+    if pointer.is_file():
+        try:
+            named = root / str(read_json(pointer)["dir"])
+        except (DataError, KeyError, TypeError) as exc:
+            logger.warning("%s is damaged (%s): looking for checkpoint folders instead", pointer, exc)
+        else:
+            folders.sort(key=lambda folder: folder != named)
+    return folders
+
+
+def resume_checkpoint(run_dir: Path) -> tuple[Path, Checkpoint] | None:
+    """The newest checkpoint that loads, with its folder; None when there is none.
+
+    A damaged newer checkpoint is skipped with a warning naming the bad file and the one resumed from.
+    Raises :class:`DamagedFileError` when every checkpoint is damaged.
+    """
+    damaged: list[str] = []
+    for folder in checkpoint_folders(run_dir):
+        try:
+            loaded = load_checkpoint(folder)
+        except DataError as exc:
+            logger.warning("checkpoint %s is damaged: %s", folder.name, exc)
+            damaged.append(str(exc))
+            continue
+        if damaged:
+            logger.warning("resuming from %s, the newest intact checkpoint", folder)
+        return folder, loaded
+    if damaged:
+        raise DamagedFileError(f"{Path(run_dir) / 'checkpoints'}: no intact checkpoint ({'; '.join(damaged)})")
+    return None
 
 
 def load_checkpoint(folder: Path) -> Checkpoint:
-    """Read a checkpoint folder written by :func:`save_checkpoint`."""
-    meta = json.loads((folder / "state.json").read_text())
+    """Read a checkpoint folder written by :func:`save_checkpoint`; damaged files raise naming the file."""
+    state_path = folder / "state.json"
+    meta = read_json(state_path)
+    try:
+        step, optim_meta = int(meta["step"]), meta["optimizers"]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DamagedFileError(f"{state_path}: expected 'step' and 'optimizers' ({exc!r})") from exc
     optim_tensors = load_safetensors(folder / "optim.safetensors")
-    optimizers = {name: optimizer_from_tensors(name, optim_tensors, m) for name, m in meta["optimizers"].items()}
+    optimizers = {name: optimizer_from_tensors(name, optim_tensors, m) for name, m in optim_meta.items()}
     strategy = dict(meta.get("strategy", {}))
     if (folder / "strategy.safetensors").is_file():
         strategy.update(load_safetensors(folder / "strategy.safetensors"))
-    return Checkpoint(step=int(meta["step"]), scene=load_safetensors(folder / "scene.safetensors"),
+    return Checkpoint(step=step, scene=load_safetensors(folder / "scene.safetensors"),
                       optimizers=optimizers, strategy=strategy, extra=meta.get("extra", {}))
 
 
@@ -190,4 +234,4 @@ def load_accelerate_checkpoint(accelerator: Accelerator, folder: str | os.PathLi
     if not (folder / "extra.json").is_file():
         raise FileNotFoundError(f"{folder} is not a complete checkpoint (no extra.json)")
     accelerator.load_state(str(folder))
-    return json.loads((folder / "extra.json").read_text())
+    return read_json(folder / "extra.json")

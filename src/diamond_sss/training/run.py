@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,7 +23,7 @@ from diamond_sss.evaluation.evaluate import (
 )
 from diamond_sss.training.config import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer, TrainResult, load_scene, resolve_device
-from diamond_sss.utils.io import atomic_write, atomic_write_json
+from diamond_sss.utils.io import atomic_write, atomic_write_json, read_json
 
 
 def train_run(data: Path, out: Path, *, split: str = "train", regime: str = "all", preset: str = "diamond",
@@ -91,7 +90,7 @@ def render_run(run: Path, out: Path, *, data: Path | None = None, split: str = "
     scene, cfg = load_scene(run, resolve_device(device))
     dev = next(scene.parameters()).device
     if data is None:
-        data = Path(json.loads((run / "data.json").read_text())["data"])
+        data = Path(read_json(run / "data.json")["data"])
     dataset = OLATDataset(data, split, downscale=cfg.downscale)
     if len(lights) % 3 != 0:
         raise ValueError(f"--light expects x y z triples, got {len(lights)} numbers")

@@ -33,7 +33,7 @@ from diamond_sss.losses.regularizers import raytrace_visibility_loss
 from diamond_sss.rendering.relightable import RelightableScene
 from diamond_sss.shading.raytrace import raytraced_visibility
 from diamond_sss.shading.sh import visibility_from_sh
-from diamond_sss.training.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from diamond_sss.training.checkpoint import resume_checkpoint, save_checkpoint
 from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.lattice import unify_lattices
 from diamond_sss.training.loss_log import LossLog
@@ -364,12 +364,12 @@ class Trainer:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
         start_step = 0
-        checkpoint = latest_checkpoint(self.run_dir) if resume else None
-        if resume and checkpoint is None:
+        found = resume_checkpoint(self.run_dir) if resume else None
+        if resume and found is None:
             logger.warning("%s: --resume but no checkpoint in %s: training from step 0", self.run_dir,
                            self.run_dir / "checkpoints")
-        if checkpoint is not None:
-            loaded = load_checkpoint(checkpoint)
+        if found is not None:
+            checkpoint, loaded = found
             scene = scene_from_tensors(loaded.scene, cfg).to(self.device)
             optimizers = self.build_optimizers(scene)
             for name, optimizer in optimizers.items():

@@ -1,7 +1,7 @@
 """The objective of a trial: train a short reconstruction, report validation PSNR to the pruner.
 
 Each trial resolves ``preset`` + fixed ``overrides`` + the sampled parameters (schedule keys scaled, see
-:func:`~diamond_sss.tuning.space.scale_schedule`), drives :meth:`Trainer.training_step` for ``iterations``
+:func:`~diamond_sss.training.config.scale_schedule`), drives :meth:`Trainer.training_step` for ``iterations``
 steps and, every ``report_every`` steps and at the end, reports the mean validation PSNR (dB) so a median
 pruner can stop it. A non-finite loss or render raises :class:`FloatingPointError`: the study records the
 trial as failed (with the reason in the user attribute ``failure``) and goes on.
@@ -23,13 +23,12 @@ from typing import Any
 import optuna
 
 from diamond_sss.rendering.relightable import RelightableScene
-from diamond_sss.training.config import TrainConfig, make_config
+from diamond_sss.training.config import TrainConfig, make_config, scale_schedule
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.tuning.space import (
     SEARCH_SPACE,
     ParamRange,
     default_schedule_scale,
-    scale_schedule,
     suggest_params,
 )
 from diamond_sss.tuning.validation import TuneData, validation_psnr

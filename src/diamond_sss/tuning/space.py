@@ -2,9 +2,9 @@
 
 Every key is a :class:`~diamond_sss.training.config.TrainConfig` field. Ranges bracket both columns of
 Tab. 4 ("Original" = the ``sss3dgs`` preset, "Best" = the ``diamond`` preset), so both presets are points
-of the space and can be enqueued as trials. Iteration-valued keys (:data:`SCHEDULE_KEYS`) are given for
-the full schedule of ``TrainConfig.iterations`` steps; a study with shorter trials scales them by
-``iterations / TrainConfig.iterations`` (:func:`scale_schedule`).
+of the space and can be enqueued as trials. Iteration-valued keys are given for the full schedule of
+``TrainConfig.iterations`` steps; a study with shorter trials scales them by
+``iterations / TrainConfig.iterations`` (:func:`~diamond_sss.training.config.scale_schedule`).
 """
 
 from __future__ import annotations
@@ -56,10 +56,6 @@ SEARCH_SPACE: dict[str, ParamRange] = {
     "densify_grad_threshold": ParamRange(0.0001, 0.002, log=True),
 }
 
-SCHEDULE_KEYS = ("densification_interval", "opacity_reset_interval", "densify_from_iter",
-                 "densify_until_iter")
-
-
 def distributions(
         space: Mapping[str, ParamRange] = SEARCH_SPACE) -> dict[str, optuna.distributions.BaseDistribution]:
     """Optuna distributions of ``space`` by key (types from ``TrainConfig``); unknown keys are errors."""
@@ -94,11 +90,3 @@ def default_schedule_scale(iterations: int) -> float:
     if iterations <= 0:
         raise ValueError(f"iterations must be positive, got {iterations}")
     return iterations / TrainConfig.iterations
-
-
-def scale_schedule(params: Mapping[str, Any], scale: float) -> dict[str, Any]:
-    """``params`` with every :data:`SCHEDULE_KEYS` value multiplied by ``scale`` (rounded, at least 1)."""
-    if scale <= 0:
-        raise ValueError(f"schedule scale must be positive, got {scale}")
-    return {key: max(1, round(value * scale)) if key in SCHEDULE_KEYS else value
-            for key, value in params.items()}

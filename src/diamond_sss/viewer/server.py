@@ -7,6 +7,8 @@ re-rendered only when the client's camera or the GUI changed.
 
 from __future__ import annotations
 
+import ipaddress
+import logging
 import time
 from pathlib import Path
 
@@ -22,6 +24,8 @@ from diamond_sss.viewer.frame import (
     view_intrinsics,
     viser_camera_to_w2c,
 )
+
+logger = logging.getLogger(__name__)
 
 MATERIALS = {"roughness": 0.5, "metallic": 0.0, "subsurface": 0.5}
 """Materials the GUI can override, with the slider's initial value."""
@@ -125,10 +129,25 @@ class SceneViewer:
         client.camera.look_at = tuple(center)
 
 
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (a name or an address) is reachable only from this machine."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def viewer_url(host: str, port: int) -> str:
+    """The URL of a server bound to ``host``:``port`` (IPv6 addresses in brackets)."""
+    return f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
+
+
 def serve(
     run: Path,
     *,
-    host: str = "0.0.0.0",
+    host: str = "127.0.0.1",
     port: int = 8080,
     resolution: int = 256,
     device: str = "auto",
@@ -138,9 +157,11 @@ def serve(
     from diamond_sss.training.trainer import load_scene, resolve_device
 
     scene, _ = load_scene(Path(run), resolve_device(device))
+    if not is_loopback(host):
+        logger.warning("viewer listens on %s: anyone who can reach this machine on port %d can drive it", host, port)
     server = viser.ViserServer(host=host, port=port)
     viewer = SceneViewer(server, scene, resolution)
-    print(f"viewer of {run} at http://localhost:{server.get_port()} (Ctrl-C to stop)")
+    print(f"viewer of {run} at {viewer_url(host, server.get_port())} (Ctrl-C to stop)")
     try:
         while True:
             if viewer.refresh() == 0:
