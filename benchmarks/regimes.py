@@ -24,12 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
+from diamond_sss.cli.synth_commands import synth
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.evaluation.ablation import regime_slug
 from diamond_sss.evaluation.evaluate import render_observation
 from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
-from diamond_sss.synth.cli import synth
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.run import evaluate_run, train_run
 from diamond_sss.training.trainer import load_scene

@@ -112,13 +112,13 @@ def test_cli_reports_a_damaged_run_file_in_one_line(trained, tmp_path, capsys, n
 def test_resume_falls_back_to_the_newest_intact_checkpoint(trained, capture, tmp_path, caplog, damaged_file):
     run = copy_run(trained, tmp_path)
     folders = checkpoint_folders(run)
-    assert [f.name for f in folders] == ["step_0000004", "step_0000002"]
+    assert [f.name for f in folders] == ["step_00000004", "step_00000002"]
     truncate(folders[0] / damaged_file)
     with caplog.at_level(logging.WARNING):
         folder, loaded = resume_checkpoint(run)
-    assert folder.name == "step_0000002" and loaded.step == 2
+    assert folder.name == "step_00000002" and loaded.step == 2
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
-    assert f"step_0000004 is damaged: {folders[0] / damaged_file}" in warnings[0]
+    assert f"step_00000004 is damaged: {folders[0] / damaged_file}" in warnings[0]
     assert warnings[1] == f"resuming from {folders[1]}, the newest intact checkpoint"
     cfg = make_config("diamond", overrides={**TINY, "iterations": 6, "checkpoint_every": 2})
     with caplog.at_level(logging.INFO, logger="diamond_sss.training.trainer"):
@@ -133,7 +133,7 @@ def test_corrupt_latest_json_is_named_and_the_folders_are_used(trained, tmp_path
     (run / "checkpoints" / "latest.json").write_text('{"step": 4,')
     with caplog.at_level(logging.WARNING):
         folder, loaded = resume_checkpoint(run)
-    assert folder.name == "step_0000004" and loaded.step == 4
+    assert folder.name == "step_00000004" and loaded.step == 4
     assert any(r.getMessage().startswith(f"{run / 'checkpoints' / 'latest.json'}: damaged or invalid JSON")
                for r in caplog.records)
 
@@ -142,7 +142,7 @@ def test_every_checkpoint_damaged_is_an_error_naming_them(trained, tmp_path):
     run = copy_run(trained, tmp_path)
     for folder in checkpoint_folders(run):
         truncate(folder / "scene.safetensors")
-    with pytest.raises(DamagedFileError, match=r"checkpoints: no intact checkpoint .*step_0000004.*step_0000002"):
+    with pytest.raises(DamagedFileError, match=r"checkpoints: no intact checkpoint .*step_00000004.*step_00000002"):
         resume_checkpoint(run)
     (checkpoint_folders(run)[0] / "state.json").write_text('{"optimizers": {}}')
     with pytest.raises(DamagedFileError, match=r"state\.json: expected 'step' and 'optimizers'"):

@@ -26,6 +26,17 @@ from diamond_sss.data.images import write_png
 from diamond_sss.utils.logs import reset_warnings
 
 
+def test_intrinsics_from_either_field_of_view():
+    square = torch.tensor([[50.0, 0, 50.0], [0, 50.0, 40.0], [0, 0, 1]])
+    assert torch.allclose(intrinsics_from_fov(math.radians(90.0), 100, 80), square, atol=1e-4)
+    vertical = torch.tensor([[40.0, 0, 50.0], [0, 40.0, 40.0], [0, 0, 1]])
+    assert torch.allclose(intrinsics_from_fov(None, 100, 80, math.radians(90.0)), vertical, atol=1e-4)
+    both = intrinsics_from_fov(math.radians(90.0), 100, 80, math.radians(90.0))
+    assert torch.allclose(both.diagonal(), torch.tensor([50.0, 40.0, 1.0]), atol=1e-4)
+    with pytest.raises(ValueError, match="fov_x or fov_y"):
+        intrinsics_from_fov(None, 100, 80)
+
+
 def test_known_point_projects_to_known_pixel():
     c2w = look_at_opengl_c2w(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3))
     w2c = opengl_c2w_to_opencv_w2c(c2w).float()

@@ -149,3 +149,19 @@ def test_the_default_preset_trains_on_cuda(capture, tmp_path):
     result = Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False).run()
     assert math.isfinite(result.final_loss)
     assert {"raytrace", "mv_silhouette", "mv_depth"} <= result.history[-1].keys()
+
+
+@pytest.mark.parametrize("value", [-0.5, float("nan")])
+def test_synthetic_weight_is_checked_in_the_config_not_in_the_step(value):
+    from diamond_sss.training.config import make_config
+
+    with pytest.raises(ValueError, match="synthetic_weight"):
+        make_config("diamond", overrides={"synthetic_weight": value})
+
+
+def test_epoch_order_is_a_permutation_drawn_once_per_epoch():
+    from diamond_sss.data.dataset import seeded_epoch_indices
+
+    order = [seeded_epoch_indices(step, 1, 7, seed=3)[0] for step in range(14)]
+    assert sorted(order[:7]) == sorted(order[7:]) == list(range(7)) and order[:7] != order[7:]
+    assert seeded_epoch_indices(2, 3, 7, seed=3) == order[6:9]

@@ -15,9 +15,9 @@ from diamond_sss.gaussians.model import GaussianModel
 from diamond_sss.rendering.relightable import RelightableScene
 from diamond_sss.viewer import (
     ViewSettings,
-    intrinsics_from_fov,
     light_from_angles,
     render_frame,
+    view_intrinsics,
     viser_camera_to_w2c,
 )
 
@@ -50,11 +50,11 @@ def test_viser_camera_matches_the_data_convention():
 
 
 def test_intrinsics_and_light_known_answers():
-    K, width, height = intrinsics_from_fov(math.pi / 2, 1.5, 100)
+    K, width, height = view_intrinsics(math.pi / 2, 1.5, 100)
     assert (width, height) == (150, 100)
     assert torch.allclose(K, torch.tensor([[50.0, 0, 75.0], [0, 50.0, 50.0], [0, 0, 1]]), atol=1e-4)
     with pytest.raises(ValueError, match="field of view"):
-        intrinsics_from_fov(0.0, 1.0, 10)
+        view_intrinsics(0.0, 1.0, 10)
     settings = ViewSettings(azimuth_deg=90.0, elevation_deg=0.0, distance_radii=3.0)
     assert torch.allclose(
         light_from_angles(torch.tensor([1.0, 0, 0]), 2.0, settings), torch.tensor([1.0, 6.0, 0]), atol=1e-5
@@ -68,7 +68,7 @@ def test_intrinsics_and_light_known_answers():
 def test_frame_is_the_renderers_image_and_channels_differ():
     scene = small_scene().eval()
     w2c = opengl_c2w_to_opencv_w2c(look_at_opengl_c2w(torch.tensor([0.0, -2.5, 0.5]), torch.zeros(3))).float()
-    K, width, height = intrinsics_from_fov(math.radians(40.0), 1.0, 24)
+    K, width, height = view_intrinsics(math.radians(40.0), 1.0, 24)
     settings = ViewSettings(
         azimuth_deg=-60.0, elevation_deg=20.0, intensity=2.0, overrides={"roughness": 0.3}
     )

@@ -102,8 +102,8 @@ def nvs(
 ) -> None:
     """Generate novel views of an object under a fixed light from one reference image (Free3D-style model).
 
-    Writes <out>/<name>.png (sRGB, premultiplied, with alpha), <out>/<name>_mask.png and <out>/manifest.json
-    (a list of {view, light, image, mask}); results are cached by model hash and input hash.
+    Writes <out>/images/<name>.png (sRGB, premultiplied, with alpha), <out>/masks/<name>.png and
+    <out>/manifest.json (a list of {view, light, image, mask}); results are cached by model hash and input hash.
 
     Args:
         data: OLAT data folder holding transforms_<split>.json.
@@ -122,15 +122,16 @@ def nvs(
         geometry: metric depth of the reference for models with the warp hint: a reconstruction run folder
             (holding model.safetensors) or 'maps' (depth maps stored with the data).
     """
+    from diamond_sss.data.dataset import OLATDataset
     from diamond_sss.diffusion.geometry import geometry_source
-    from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
+    from diamond_sss.diffusion.nvs.pipeline import generate_novel_views, parse_targets
 
     manifest = generate_novel_views(
         data,
         out,
         view,
         light,
-        targets,
+        parse_targets(targets, OLATDataset(data, split)),
         split=split,
         model_dir=model,
         steps=steps,
@@ -176,9 +177,9 @@ def write_free3d_model(src: Path, out: Path, config, seed: int = 0, half: bool =
 
     import torch
 
+    from diamond_sss.diffusion.common.model_io import save_model
     from diamond_sss.diffusion.nvs.convert import load_free3d_checkpoint
-    from diamond_sss.diffusion.nvs.model import CONFIG_NAME, WEIGHTS_NAME, ReferenceEncoder
-    from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json
+    from diamond_sss.diffusion.nvs.model import MODEL_KIND, ReferenceEncoder
 
     try:
         converted, _ = load_free3d_checkpoint(src, config)
@@ -191,8 +192,5 @@ def write_free3d_model(src: Path, out: Path, config, seed: int = 0, half: bool =
         encoder = ReferenceEncoder(config.model_channels, config.encoder_channels, config.embed_dim)
     tensors = {**converted, **{f"reference_encoder.{k}": v for k, v in encoder.state_dict().items()},
                "null_embedding": torch.zeros(config.embed_dim)}
-    if half:
-        tensors = {k: v.half() if v.is_floating_point() else v for k, v in tensors.items()}
-    atomic_save_safetensors(Path(out) / WEIGHTS_NAME, tensors)
-    atomic_write_json(Path(out) / CONFIG_NAME, asdict(config))
+    save_model(out, MODEL_KIND, asdict(config), tensors, half=half)
     return Path(out), len(converted)

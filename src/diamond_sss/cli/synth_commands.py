@@ -24,6 +24,8 @@ def synth(
     camera_radius: float = 4.0,
     light_radius: float = 5.0,
     fov_x_deg: float = 32.0,
+    noise_seed: int = 0,
+    train: bool = True,
 ) -> None:
     """Render a physically based OLAT capture of a procedural translucent object (Mitsuba 3, volpath).
 
@@ -48,6 +50,9 @@ def synth(
         camera_radius: Distance of the cameras from the object centre (object radius 1).
         light_radius: Distance of the lights from the object centre.
         fov_x_deg: Horizontal field of view in degrees.
+        noise_seed: Non-zero: the same images with independent Monte Carlo noise (a second render of a
+            capture measures its noise ceiling: see benchmarks/quality.py).
+        train: Render the training lattice (--no-train: only the test split).
     """
     from tqdm import tqdm
 
@@ -79,6 +84,8 @@ def synth(
         maps=maps,
         subset=subset,
         seed=seed,
+        noise_seed=noise_seed,
+        train=train,
     )
     total = sum(len(p) for p in plan_pairs(config).values())
     with tqdm(total=total, desc=f"synth {shape}/{material}", unit="img") as bar:

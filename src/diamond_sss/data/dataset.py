@@ -11,7 +11,7 @@ import logging
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -326,9 +326,15 @@ def seeded_epoch_indices(step: int, batch_size: int, count: int, seed: int) -> l
     out = []
     for k in range(batch_size):
         epoch, position = divmod(step * batch_size + k, count)
-        generator = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
-        out.append(int(torch.randperm(count, generator=generator)[position]))
+        out.append(_epoch_permutation(seed, epoch, count)[position])
     return out
+
+
+@lru_cache(maxsize=4)
+def _epoch_permutation(seed: int, epoch: int, count: int) -> tuple[int, ...]:
+    """The seeded order of epoch ``epoch`` (drawn once per epoch, not once per step)."""
+    generator = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+    return tuple(torch.randperm(count, generator=generator).tolist())
 
 
 def scene_bounds(viewmats: Tensor, Ks: Tensor, width: int, height: int) -> SceneBounds:

@@ -30,6 +30,7 @@ import torch
 from diamond_sss.data.dataset import OLATDataset, directions_from
 from diamond_sss.data.images import load_rgba
 from diamond_sss.data.regimes import farthest_point_order, select_regime
+from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, read_image_manifest
 from diamond_sss.evaluation.metrics import mask_iou
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
 from diamond_sss.training.config import make_config
@@ -279,7 +280,7 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
                     nearest.setdefault(sources[int(torch.argmax(similarity))], []).append(target)
                 for reference, group in nearest.items():
                     generate_novel_views(data, nvs_dir / f"l{light:03d}_v{reference:03d}", reference, light,
-                                         ",".join(str(v) for v in group), split=split, model_dir=cfg.nvs_model,
+                                         group, split=split, model_dir=cfg.nvs_model,
                                          steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=seed,
                                          cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
                                          device=cfg.device, geometry=geometry)
@@ -287,12 +288,8 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
             return {"targets": len(targets), "calls": calls}
 
         stage("nvs", nvs_stage)
-        for manifest_path in sorted(nvs_dir.glob("*/manifest.json")):
-            for entry in json.loads(manifest_path.read_text()):
-                item = GeneratedImage(entry["view"], entry["light"], manifest_path.parent / entry["image"],
-                                      manifest_path.parent / entry["mask"])
-                if keep(item):
-                    generated.append(item)
+        for manifest_path in sorted(nvs_dir.glob(f"*/{MANIFEST_NAME}")):
+            generated += [item for item in read_image_manifest(manifest_path) if keep(item)]
 
     relight_dir = out / "relight"
     if "relight" in cfg.augment:
@@ -327,12 +324,7 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
             return {"views": len(lights_of_view), "images": len(results), "sources_json": combined_json.name}
 
         stage("relight", relight_stage)
-        manifest_path = relight_dir / "out" / "manifest.json"
-        for entry in json.loads(manifest_path.read_text()):
-            item = GeneratedImage(entry["view"], entry["light"], manifest_path.parent / entry["image"],
-                                  manifest_path.parent / entry["mask"])
-            if keep(item):
-                generated.append(item)
+        generated += [item for item in read_image_manifest(relight_dir / "out" / MANIFEST_NAME) if keep(item)]
 
     extra = []
     if generated:

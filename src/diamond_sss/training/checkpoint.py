@@ -1,25 +1,31 @@
-"""Atomic training checkpoints: scene tensors, optimiser states and densification state (safetensors + JSON).
+"""Atomic, resumable checkpoints in ``step_<N>`` folders (``N`` zero-padded to 8 digits; older runs with
+7-digit names are still found and ordered by their number).
 
-Layout of ``<run>/checkpoints``::
+Scene trainer (:func:`save_checkpoint`), layout of ``<run>/checkpoints``::
 
-    step_000500/scene.safetensors      raw Gaussian parameters, MLP weights, log light scale
-    step_000500/optim.safetensors      Adam moments of every optimiser, keyed ``<optimizer>/<slot>``
-    step_000500/strategy.safetensors   densification accumulators (when present)
-    step_000500/state.json             step, optimiser hyperparameters, strategy scalars
-    latest.json                        {"step": 500, "dir": "step_000500"}
+    step_00000500/scene.safetensors      raw Gaussian parameters, MLP weights, log light scale
+    step_00000500/optim.safetensors      Adam moments of every optimiser, keyed ``<optimizer>/<slot>``
+    step_00000500/strategy.safetensors   densification accumulators (when present)
+    step_00000500/state.json             step, optimiser hyperparameters, strategy scalars
+    latest.json                          {"step": 500, "dir": "step_00000500"}
 
-A checkpoint folder is written under a temporary name and renamed into place, then ``latest.json`` is
-replaced atomically, so a kill at any moment leaves the previous checkpoint usable.
+Diffusion fine-tunes (:func:`save_accelerate_checkpoint`): ``accelerator.save_state`` plus ``extra.json``
+in ``<root>/step_<N>``.
+
+A checkpoint folder is written under a temporary name and renamed into place (then ``latest.json`` is
+replaced atomically), so a kill at any moment leaves the previous checkpoint usable.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -35,7 +41,25 @@ from diamond_sss.utils.io import (
 
 logger = logging.getLogger(__name__)
 
+if TYPE_CHECKING:
+    from accelerate import Accelerator
+
 KEEP_CHECKPOINTS = 2
+_STEP_DIR = re.compile(r"^step_(\d+)$")
+
+
+def step_folder_name(step: int) -> str:
+    """Name of the checkpoint folder of ``step`` (``step_00000500``)."""
+    return f"step_{step:08d}"
+
+
+def _checkpoints(root: Path, marker: str | None = None) -> list[Path]:
+    """``step_<N>`` folders under ``root`` (holding ``marker`` when given), oldest first by ``N`` (any zero
+    padding)."""
+    if not root.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in root.iterdir() if p.is_dir() and (m := _STEP_DIR.match(p.name))]
+    return [p for _, p in sorted(found) if marker is None or (p / marker).is_file()]
 
 
 @dataclass
@@ -83,7 +107,7 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
     """Write checkpoint ``step`` atomically and keep the newest :data:`KEEP_CHECKPOINTS`."""
     root = Path(run_dir) / "checkpoints"
     root.mkdir(parents=True, exist_ok=True)
-    name = f"step_{step:07d}"
+    name = step_folder_name(step)
     tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=root))
     os.chmod(tmp, default_mode(directory=True))
     try:
@@ -109,7 +133,7 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
         if tmp.exists():
             shutil.rmtree(tmp)
     atomic_write_json(root / "latest.json", {"step": step, "dir": name})
-    for old in sorted(p for p in root.glob("step_*") if p.is_dir())[:-KEEP_CHECKPOINTS]:
+    for old in _checkpoints(root, "state.json")[:-KEEP_CHECKPOINTS]:
         shutil.rmtree(old)
     return final
 
@@ -117,7 +141,7 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
 def checkpoint_folders(run_dir: Path) -> list[Path]:
     """Checkpoint folders of a run, newest first (the one ``latest.json`` names first when it reads)."""
     root = Path(run_dir) / "checkpoints"
-    folders = sorted((p for p in root.glob("step_*") if p.is_dir()), reverse=True)
+    folders = _checkpoints(root)[::-1]
     pointer = root / "latest.json"
     if pointer.is_file():
         try:
@@ -169,3 +193,48 @@ def load_checkpoint(folder: Path) -> Checkpoint:
         strategy.update(load_safetensors(folder / "strategy.safetensors"))
     return Checkpoint(step=step, scene=load_safetensors(folder / "scene.safetensors"),
                       optimizers=optimizers, strategy=strategy, extra=meta.get("extra", {}))
+
+
+def save_accelerate_checkpoint(
+    accelerator: Accelerator, root: str | os.PathLike, step: int, extra: dict | None = None, keep: int = 2
+) -> Path | None:
+    """Save models, optimizers, schedulers, RNG states and registered objects as ``root/step_<step>``.
+
+    ``accelerator.save_state`` writes into a temporary folder that is renamed into place once complete,
+    then only the ``keep`` newest checkpoints are kept. ``extra`` (JSON) is stored as ``extra.json``.
+    Returns the folder on the main process, ``None`` elsewhere.
+    """
+    accelerator.wait_for_everyone()
+    if not accelerator.is_main_process:
+        return None
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    final = root / step_folder_name(step)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=root))
+    try:
+        accelerator.save_state(str(tmp), safe_serialization=True)
+        atomic_write_json(tmp / "extra.json", {"step": step, **(extra or {})})
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    for old in _checkpoints(root, "extra.json")[:-keep] if keep > 0 else []:
+        shutil.rmtree(old)
+    return final
+
+
+def latest_accelerate_checkpoint(root: str | os.PathLike) -> Path | None:
+    """Newest complete ``step_<N>`` folder under ``root`` (temporary folders are ignored)."""
+    found = _checkpoints(Path(root), "extra.json")
+    return found[-1] if found else None
+
+
+def load_accelerate_checkpoint(accelerator: Accelerator, folder: str | os.PathLike) -> dict:
+    """Restore everything ``save_accelerate_checkpoint`` saved; returns the ``extra.json`` content (with ``step``)."""
+    folder = Path(folder)
+    if not (folder / "extra.json").is_file():
+        raise FileNotFoundError(f"{folder} is not a complete checkpoint (no extra.json)")
+    accelerator.load_state(str(folder))
+    return read_json(folder / "extra.json")

@@ -71,6 +71,8 @@ class TrainConfig:
     sss_width: int = _key(32, "hidden width of the subsurface-scattering MLP")
     random_background: bool = _key(False, "train on random background colours")
     # loss weights (Eq. A.1-A.7, Tab. 3)
+    photometric_space: str = _key("linear", "where L1 / D-SSIM compare images: linear radiance | srgb (the "
+                                  "metrics' space, which weighs dark regions as PSNR does)")
     lambda_dssim: float = _key(0.492, "weight of the D-SSIM term of the photometric loss")
     lambda_lpips: float = _key(0.171, "weight of the LPIPS loss")
     lambda_mask: float = _key(0.1, "weight of the mask (alpha vs object mask) loss")
@@ -308,10 +310,12 @@ def validate_config(config: TrainConfig) -> None:
             raise ValueError(f"config key '{key}' must be positive, got {getattr(config, key)}")
     for f in fields(config):
         value = getattr(config, f.name)
-        if f.name.startswith("lambda_") and value < 0:
+        if (f.name.startswith("lambda_") or f.name == "synthetic_weight") and not value >= 0:
             raise ValueError(f"config key '{f.name}' must be >= 0, got {value}")
     if config.init not in ("auto", "ply", "hull", "random"):
         raise ValueError(f"config key 'init' must be auto|ply|hull|random, got '{config.init}'")
+    if config.photometric_space not in ("linear", "srgb"):
+        raise ValueError(f"config key 'photometric_space' must be linear|srgb, got '{config.photometric_space}'")
     if config.mv_target_mode not in ("nearest-k", "random"):
         raise ValueError(f"config key 'mv_target_mode' must be nearest-k|random, got '{config.mv_target_mode}'")
     if config.device not in ("auto", "cpu", "cuda") and not config.device.startswith("cuda:"):

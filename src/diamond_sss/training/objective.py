@@ -6,7 +6,8 @@
               + l_sil L_sil^MV + l_depth L_depth^MV
 
 ``[.]_w``: per-image weighted (1 for real images, ``synthetic_weight`` = alpha for generated ones). All image
-terms compare linear radiance; LPIPS compares sRGB. Geometric terms (mask, normals, multi-view) use every
+terms compare linear radiance (L1 and D-SSIM in sRGB with ``photometric_space="srgb"``); LPIPS compares
+sRGB. Geometric terms (mask, normals, multi-view) use every
 image at full weight.
 """
 
@@ -48,7 +49,11 @@ def image_objective(render: SceneRender, target: TargetBatch, cfg: TrainConfig,
     """Weighted loss terms of one batch (each already multiplied by its lambda), by name."""
     terms: dict[str, Tensor] = {}
     pred = render.radiance
-    terms["photometric"] = photometric.photometric_loss(pred, target.rgb, cfg.lambda_dssim, target.weights)
+    if cfg.photometric_space == "srgb":
+        compared, reference = linear_to_srgb(pred), linear_to_srgb(target.rgb)
+    else:
+        compared, reference = pred, target.rgb
+    terms["photometric"] = photometric.photometric_loss(compared, reference, cfg.lambda_dssim, target.weights)
     if lpips_model is not None and cfg.lambda_lpips > 0:
         distance = lpips_model(linear_to_srgb(pred), linear_to_srgb(target.rgb))
         terms["lpips"] = cfg.lambda_lpips * weighted_mean(distance, target.weights)

@@ -26,7 +26,7 @@ from diamond_sss.data.conventions import camera_centers, linear_to_srgb, scale_i
 from diamond_sss.data.dataset import OLATDataset, seeded_epoch_indices
 from diamond_sss.data.images import resize_area
 from diamond_sss.gaussians.init import initial_points
-from diamond_sss.gaussians.model import GaussianModel
+from diamond_sss.gaussians.model import GAUSSIAN_PARAMS, GaussianModel
 from diamond_sss.losses.lpips import load_lpips
 from diamond_sss.losses.multiview import MultiViewConfig, multiview_losses_batched, sample_foreground_pixels
 from diamond_sss.losses.regularizers import raytrace_visibility_loss
@@ -44,17 +44,8 @@ from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, loa
 
 logger = logging.getLogger(__name__)
 
-GAUSSIAN_LR_KEYS = {
-    "scales": "scaling_lr",
-    "quats": "rotation_lr",
-    "opacities": "opacity_lr",
-    "normals": "normal_lr",
-    "base_color": "base_color_lr",
-    "roughness": "roughness_lr",
-    "metallic": "metallic_lr",
-    "subsurface": "subsurfacedness_lr",
-    "visibility_sh": "visibility_lr",
-}
+GAUSSIAN_LR_KEYS = {param.name: param.lr for param in GAUSSIAN_PARAMS if param.lr is not None}
+"""Gaussian parameter -> the config field of its learning rate (the positions have their own schedule)."""
 
 
 @dataclass

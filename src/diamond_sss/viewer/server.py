@@ -19,9 +19,9 @@ from diamond_sss.rendering.relightable import RelightableScene
 from diamond_sss.viewer.frame import (
     CHANNELS,
     ViewSettings,
-    intrinsics_from_fov,
     light_from_angles,
     render_frame,
+    view_intrinsics,
     viser_camera_to_w2c,
 )
 
@@ -94,7 +94,7 @@ class SceneViewer:
 
     def frame(self, wxyz: np.ndarray, position: np.ndarray, fov_y: float, aspect: float) -> np.ndarray:
         """The image a client with this camera sees now (uint8 ``[H,W,3]``)."""
-        K, width, height = intrinsics_from_fov(fov_y, aspect, int(self.resolution.value))
+        K, width, height = view_intrinsics(fov_y, aspect, int(self.resolution.value))
         return render_frame(
             self.scene, viser_camera_to_w2c(wxyz, position), K, width, height, self.settings()
         )

@@ -19,11 +19,9 @@ from diamond_sss.diffusion.geometry.base import (
     GeometryError,
     GeometryMaps,
     GeometrySource,
-    normals_from_nearness,
-)
-from diamond_sss.diffusion.relight.conditioning import (
     depth_to_nearness,
     normalized_nearness,
+    normals_from_nearness,
     world_to_camera_normals,
 )
 

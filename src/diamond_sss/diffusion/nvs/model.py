@@ -12,24 +12,23 @@ sample at sampling time. Space: ``pixel`` (RGBA in ``[-1, 1]``, the small offlin
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from diffusers import AutoencoderKL, DDIMScheduler, DDPMScheduler, UNet2DConditionModel
+from diffusers import AutoencoderKL, DDPMScheduler, UNet2DConditionModel
 from torch import Tensor, nn
 
 from diamond_sss.data.conventions import scale_intrinsics
+from diamond_sss.diffusion.common.model_io import CONFIG_NAME, load_weights, read_model_config, save_model
+from diamond_sss.diffusion.common.schedulers import SchedulerConfig, make_ddpm_scheduler
 from diamond_sss.diffusion.nvs.layers import ConditioningSlot, graft_free3d_layers, set_layer_checkpointing
 from diamond_sss.diffusion.nvs.rays import RELATIVE_POSE_CHANNELS, ray_embedding, relative_spherical_pose
 from diamond_sss.diffusion.nvs.warp import WARP_CHANNELS, forward_warp, resize_depth
 from diamond_sss.utils import rng
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
 
-CONFIG_NAME = "config.json"
-WEIGHTS_NAME = "model.safetensors"
+MODEL_KIND = "nvs"
 
 
 @dataclass
@@ -108,6 +107,26 @@ class NVSConfig:
         """Side of the reference image and depth map the warp hint is splatted from."""
         return self.image_size * self.warp_supersample
 
+    @property
+    def scheduler(self) -> SchedulerConfig:
+        """The noise schedule (training DDPM and sampling DDIM; no zero-terminal-SNR rescaling)."""
+        return SchedulerConfig(
+            num_train_timesteps=self.num_train_timesteps,
+            beta_start=self.beta_start,
+            beta_end=self.beta_end,
+            beta_schedule=self.beta_schedule,
+            prediction_type=self.prediction_type,
+            rescale_betas_zero_snr=False,
+        )
+
+    @property
+    def sample_clip_range(self) -> float | None:
+        """Clip of the clean estimate at every DDIM step: ``[-1, 1]`` in pixel space (``[-2, 2]`` for a residual
+        from the warp hint), none in latent space."""
+        if self.space != "pixel":
+            return None
+        return 2.0 if self.hint_residual else 1.0
+
     @classmethod
     def from_dict(cls, data: dict) -> NVSConfig:
         """Config from ``config.json``; files written before the warp hint existed have ``warp_hint=False``."""
@@ -134,38 +153,6 @@ class ReferenceEncoder(nn.Module):
     def forward(self, image: Tensor) -> Tensor:
         """``[B,C,H,W] -> [B,embed_dim]``."""
         return self.proj(self.features(image).mean(dim=(-2, -1)))
-
-
-def make_train_scheduler(config: NVSConfig) -> DDPMScheduler:
-    """DDPM noise schedule of ``config`` (training)."""
-    return DDPMScheduler(
-        num_train_timesteps=config.num_train_timesteps,
-        beta_start=config.beta_start,
-        beta_end=config.beta_end,
-        beta_schedule=config.beta_schedule,
-        prediction_type=config.prediction_type,
-        clip_sample=False,
-    )
-
-
-def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
-    """Deterministic DDIM (``eta = 0``) on the same schedule; the last step returns the clean estimate.
-
-    Trailing timestep spacing, so the first step is at ``t = T - 1`` (pure noise) whatever the step count
-    (one step returns the conditional-mean estimate). In pixel space the clean estimate is clipped to
-    ``[-1, 1]`` (``[-2, 2]`` for a residual from the warp hint) at every step.
-    """
-    return DDIMScheduler(
-        num_train_timesteps=config.num_train_timesteps,
-        beta_start=config.beta_start,
-        beta_end=config.beta_end,
-        beta_schedule=config.beta_schedule,
-        prediction_type=config.prediction_type,
-        clip_sample=config.space == "pixel",
-        clip_sample_range=2.0 if config.hint_residual else 1.0,
-        set_alpha_to_one=True,
-        timestep_spacing="trailing",
-    )
 
 
 @dataclass
@@ -368,7 +355,7 @@ class NVSModel(nn.Module):
         batch.validate()
         if batch.targets is None:
             raise ValueError("training needs target images")
-        scheduler = scheduler or make_train_scheduler(self.config)
+        scheduler = scheduler or make_ddpm_scheduler(self.config.scheduler)
         b, v = batch.target_w2c.shape[:2]
         device = batch.reference.device
         with torch.no_grad():
@@ -399,88 +386,27 @@ class NVSModel(nn.Module):
             goal = scheduler.get_velocity(target, noise, t)
         return F.mse_loss(pred, goal)
 
-    # --------------------------------------------------------------- sampling
-    @torch.no_grad()
-    def sample(
-        self,
-        batch: NVSBatch,
-        num_steps: int = 50,
-        guidance_scale: float = 3.0,
-        generator: torch.Generator | None = None,
-    ) -> Tensor:
-        """Generate the target views, ``[B,V,4,H,W]`` RGBA in ``[0, 1]`` at the model's image size.
-
-        One initial noise per object, shared by its views; DDIM (``eta = 0``) with classifier-free guidance
-        ``eps = eps_u + s (eps_c - eps_u)`` where the unconditional branch drops image, reference, rays and
-        warp hint.
-        """
-        batch.validate()
-        if num_steps < 1:
-            raise ValueError(f"num_steps must be >= 1, got {num_steps}")
-        b, v = batch.target_w2c.shape[:2]
-        device = batch.reference.device
-        reference = self.encode(batch.reference)
-        hint = self.warp_hint(batch)
-        base = hint_base(hint) if self.config.hint_residual else 0.0
-        rays, pose = self.conditioning(batch, reference)
-        embedding = self.reference_encoder(reference).repeat_interleave(v, dim=0)
-        ref = reference.repeat_interleave(v, dim=0)
-        n = b * v
-        keep = torch.zeros(n, dtype=torch.bool, device=device)
-        cond = self.context(embedding, pose, keep)
-        guided = guidance_scale != 1.0
-        if guided:
-            uncond = self.context(embedding, pose, ~keep)
-            cond = torch.cat([cond, uncond])
-            ref = torch.cat([ref, torch.zeros_like(ref)])
-            rays = torch.cat([rays, torch.zeros_like(rays)])
-            if hint is not None:
-                hint = torch.cat([hint, torch.zeros_like(hint)])
-        c, h = self.config.model_channels, self.config.model_size
-        x = shared_noise(b, v, (c, h, h), generator=generator, device=device).flatten(0, 1)
-        scheduler = make_sample_scheduler(self.config)
-        scheduler.set_timesteps(num_steps, device=device)
-        for t in scheduler.timesteps:
-            model_in = torch.cat([x, x]) if guided else x
-            ts = t.expand(model_in.shape[0]).to(device)
-            pred = self.denoise(model_in, ts, ref, cond, rays, v, hint)
-            if guided:
-                pred_c, pred_u = pred.chunk(2)
-                pred = pred_u + guidance_scale * (pred_c - pred_u)
-            x = scheduler.step(pred, t, x).prev_sample
-        rgba = self.decode(x + base)
-        return rgba.reshape(b, v, *rgba.shape[1:])
-
     # -------------------------------------------------------------- save/load
     def save(self, folder: str | Path, half: bool = False) -> Path:
-        """Write ``config.json`` and ``model.safetensors`` (without the VAE; floats in fp16 with ``half``)
-        atomically into ``folder``."""
-        folder = Path(folder)
-        tensors = {
-            k: (v.half() if half and v.is_floating_point() else v).detach().cpu().contiguous()
-            for k, v in self.state_dict().items()
-            if not k.startswith("vae.")
-        }
-        atomic_save_safetensors(folder / WEIGHTS_NAME, tensors)
-        atomic_write_json(folder / CONFIG_NAME, asdict(self.config))
-        return folder
+        """Write the model (without the VAE; floats in fp16 with ``half``) into ``folder``
+        (:mod:`~diamond_sss.diffusion.common.model_io`)."""
+        state = {k: v for k, v in self.state_dict().items() if not k.startswith("vae.")}
+        return save_model(folder, MODEL_KIND, asdict(self.config), state, half=half)
+
+    @staticmethod
+    def read_config(folder: str | Path) -> NVSConfig:
+        """The config of the model in ``folder`` (either ``config.json`` layout)."""
+        config, _ = read_model_config(folder, MODEL_KIND, lambda flat: {"config": flat})
+        try:
+            return NVSConfig.from_dict(config)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{Path(folder) / CONFIG_NAME}: {error}") from error
 
     @classmethod
     def load(cls, folder: str | Path, vae: AutoencoderKL | None = None) -> NVSModel:
         """Load a model written by :meth:`save`."""
-        folder = Path(folder)
-        for name in (CONFIG_NAME, WEIGHTS_NAME):
-            if not (folder / name).is_file():
-                raise FileNotFoundError(f"NVS model folder {folder} has no {name}")
-        config = NVSConfig.from_dict(json.loads((folder / CONFIG_NAME).read_text()))
-        model = cls(config, vae=vae)
-        state = {k: v.float() if v.is_floating_point() else v for k, v in load_safetensors(folder / WEIGHTS_NAME).items()}
-        missing, unexpected = model.load_state_dict(state, strict=False)
-        missing = [k for k in missing if not k.startswith("vae.")]
-        if missing or unexpected:
-            raise ValueError(
-                f"{folder / WEIGHTS_NAME}: missing keys {missing[:5]}, unexpected {unexpected[:5]}"
-            )
+        model = cls(cls.read_config(folder), vae=vae)
+        load_weights(model, folder, skip_prefix="vae.")
         return model.eval()
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
 
-from diamond_sss.diffusion.common.sampling import SchedulerConfig
+from diamond_sss.diffusion.common.schedulers import SchedulerConfig
 
 LIGHT_CODE_DIM = 10
 """9 SH coefficients (degree 2) of the light direction in the source camera frame + the light distance."""

@@ -13,7 +13,6 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from diamond_sss.diffusion.common.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from diamond_sss.diffusion.common.ema import EMA
 from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
@@ -21,6 +20,11 @@ from diamond_sss.diffusion.relight.augment import RelightAugmentConfig, augment_
 from diamond_sss.diffusion.relight.data import RelightViews
 from diamond_sss.diffusion.relight.losses import RelightLossWeights, image_losses
 from diamond_sss.diffusion.relight.model import RelightDiffusion
+from diamond_sss.training.checkpoint import (
+    latest_accelerate_checkpoint,
+    load_accelerate_checkpoint,
+    save_accelerate_checkpoint,
+)
 from diamond_sss.utils.io import atomic_write_json
 
 
@@ -158,8 +162,8 @@ def finetune(
         lpips = lpips.to(accelerator.device).requires_grad_(False)
     start = 0
     checkpoint_root = out / "checkpoints"
-    if resume and (found := latest_checkpoint(checkpoint_root)) is not None:
-        start = int(load_checkpoint(accelerator, found)["step"])
+    if resume and (found := latest_accelerate_checkpoint(checkpoint_root)) is not None:
+        start = int(load_accelerate_checkpoint(accelerator, found)["step"])
     device = accelerator.device
     data = {k: v.to(device) for k, v in asdict_views(views).items()}
     on_device = RelightViews(**data, selection=views.selection)
@@ -201,7 +205,7 @@ def finetune(
             if log is not None:
                 log(record)
         if done % config.checkpoint_every == 0 or done == config.steps or out_of_time:
-            save_checkpoint(accelerator, checkpoint_root, done)
+            save_accelerate_checkpoint(accelerator, checkpoint_root, done)
             with ema.averaged(unwrapped):
                 unwrapped.save(out / "model")
         if out_of_time:
