@@ -26,7 +26,7 @@ row_only() {  # row_only PATTERN "label" command...: only the output lines match
   out=$("$@" 2>&1 | grep -E "$pattern" | tr '\n' ' ' | sed "s|$D|D|g; s/|/\\|/g" | cut -c1-700)
   echo "| \`$label\` | $out |"
 }
-cp_run() { rm -rf $D/r2; cp -r $D/run $D/r2; }
+cp_run() { rm -rf $D/r2; cp -r $D/run $D/r2; NEWEST=$(ls -d $D/r2/checkpoints/step_* | sort | tail -n 1); }
 row "train --set position_lr_init=inf" $CLI train --data $D/data --out $D/x --set position_lr_init=inf
 row "train --set lambda_mask=nan" $CLI train --data $D/data --out $D/x --set lambda_mask=nan
 row "train --set iterations=inf" $CLI train --data $D/data --out $D/x --set iterations=inf
@@ -41,11 +41,11 @@ cp_run; echo '{"iterations": 6,' > $D/r2/config.json
 row "export (config.json corrupt)" $CLI export --run $D/r2 --ply $D/x.ply
 cp_run; echo '{"data": ' > $D/r2/data.json
 row "render (data.json corrupt)" $CLI render --run $D/r2 --out $D/frames
-cp_run; $PY -c "import pathlib; p=pathlib.Path('$D/r2/checkpoints/step_0000004/scene.safetensors'); b=p.read_bytes(); p.write_bytes(b[:len(b)//2])"
+cp_run; $PY -c "import pathlib; p=pathlib.Path('$NEWEST/scene.safetensors'); b=p.read_bytes(); p.write_bytes(b[:len(b)//2])"
 row "train --resume (newest checkpoint's scene.safetensors cut to half)" $CLI train --data $D/data --out $D/r2 --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
 cp_run; echo '{"step": 4,' > $D/r2/checkpoints/latest.json
 row "train --resume (latest.json corrupt)" $CLI train --data $D/data --out $D/r2 --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
-cp_run; echo '{"step": 4' > $D/r2/checkpoints/step_0000004/state.json
+cp_run; echo '{"step": 4' > $NEWEST/state.json
 row "train --resume (newest state.json corrupt)" $CLI train --data $D/data --out $D/r2 --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
 cp_run; for f in $D/r2/checkpoints/step_*/optim.safetensors; do : > $f; done
 row "train --resume (every optim.safetensors empty)" $CLI train --data $D/data --out $D/r2 --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
