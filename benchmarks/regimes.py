@@ -32,7 +32,7 @@ from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.run import evaluate_run, train_run
-from diamond_sss.training.trainer import load_scene
+from diamond_sss.training.runs import load_scene
 
 RESULTS = Path(__file__).resolve().parent / "results" / "regimes"
 RUNS = Path("outputs") / "benchmarks" / "regimes"

@@ -36,7 +36,7 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
     from diamond_sss.pipeline.run import PipelineConfig, parse_augment, run_pipeline
     from diamond_sss.training.config import short_schedule
     from diamond_sss.training.run import evaluate_run, train_run
-    from diamond_sss.training.trainer import load_scene
+    from diamond_sss.training.runs import load_scene
     from diamond_sss.utils.io import atomic_write_text
 
     root = data if data is not None else embedded_dataset()

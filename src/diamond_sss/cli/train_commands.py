@@ -160,7 +160,7 @@ def export(run: Path, ply: Path) -> None:
         ply: output .ply path (opens in common 3DGS viewers; colour from the base colour).
     """
     from diamond_sss.gaussians.ply import export_ply
-    from diamond_sss.training.trainer import load_scene
+    from diamond_sss.training.runs import load_scene
 
     scene, _ = load_scene(run)
     export_ply(scene.gaussians, ply)

@@ -22,7 +22,9 @@ from diamond_sss.evaluation.evaluate import (
     write_evaluation,
 )
 from diamond_sss.training.config import make_config
-from diamond_sss.training.trainer import ImageSource, Trainer, TrainResult, load_scene, resolve_device
+from diamond_sss.training.runs import load_scene
+from diamond_sss.training.trainer import ImageSource, Trainer, TrainResult
+from diamond_sss.utils.device import resolve_device
 from diamond_sss.utils.io import atomic_write, atomic_write_json, read_json
 
 

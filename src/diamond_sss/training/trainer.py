@@ -30,7 +30,8 @@ from diamond_sss.gaussians.model import GAUSSIAN_PARAMS, GaussianModel
 from diamond_sss.losses.lpips import load_lpips
 from diamond_sss.losses.multiview import MultiViewConfig, multiview_losses_batched, sample_foreground_pixels
 from diamond_sss.losses.regularizers import raytrace_visibility_loss
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.io import save_scene, scene_from_tensors, scene_tensors
+from diamond_sss.scene.model import RelightableScene
 from diamond_sss.shading.raytrace import raytraced_visibility
 from diamond_sss.shading.sh import visibility_from_sh
 from diamond_sss.training.checkpoint import resume_checkpoint, save_checkpoint
@@ -40,7 +41,8 @@ from diamond_sss.training.loss_log import LossLog
 from diamond_sss.training.objective import TargetBatch, image_objective
 from diamond_sss.training.schedules import exponential_lr, step_decay
 from diamond_sss.utils import rng
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
+from diamond_sss.utils.device import resolve_device
+from diamond_sss.utils.io import atomic_write_json
 
 logger = logging.getLogger(__name__)
 
@@ -70,16 +72,6 @@ class TrainResult:
 def gaussian_optimizers(optimizers: dict[str, torch.optim.Optimizer]) -> dict[str, torch.optim.Optimizer]:
     """The per-Gaussian-parameter optimisers (what gsplat's strategies edit when they densify or prune)."""
     return {name: optimizers[name] for name in ("means", *GAUSSIAN_LR_KEYS)}
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> CUDA when available, else CPU."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("config 'device' asks for CUDA but torch.cuda.is_available() is False")
-    return device
 
 
 class Trainer:
@@ -458,34 +450,3 @@ def _summary_writer(path: Path):
         return None
     return SummaryWriter(str(path))
 
-
-def scene_tensors(scene: RelightableScene) -> dict[str, Tensor]:
-    """All scene tensors by ``state_dict`` name (Gaussians, MLP, light scale)."""
-    return {k: v.detach() for k, v in scene.state_dict().items()}
-
-
-def scene_from_tensors(tensors: dict[str, Tensor], cfg: TrainConfig) -> RelightableScene:
-    """Rebuild a scene from :func:`scene_tensors` (Gaussian count taken from the tensors)."""
-    prefix = "gaussians.params."
-    model = GaussianModel.from_state_tensors({k[len(prefix):]: v for k, v in tensors.items()
-                                              if k.startswith(prefix)})
-    scene = RelightableScene(model, sss_width=cfg.sss_width, light_init=cfg.light_init,
-                             mixed_precision=cfg.mixed_precision)
-    scene.load_state_dict(tensors)
-    return scene
-
-
-def save_scene(path: Path, scene: RelightableScene) -> Path:
-    """The trained scene as one safetensors file."""
-    return atomic_save_safetensors(path, scene_tensors(scene), metadata={"format": "diamond-sss-scene-v1"})
-
-
-def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[RelightableScene, TrainConfig]:
-    """The trained scene and configuration of a run folder."""
-    from diamond_sss.training.config import load_run_config
-
-    cfg = load_run_config(run_dir)
-    path = Path(run_dir) / "model.safetensors"
-    if not path.is_file():
-        raise ValueError(f"{run_dir}: no trained model ({path} is missing; is the run finished?)")
-    return scene_from_tensors(load_safetensors(path), cfg).to(device), cfg

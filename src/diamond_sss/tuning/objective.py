@@ -22,7 +22,7 @@ from typing import Any
 
 import optuna
 
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.model import RelightableScene
 from diamond_sss.training.config import TrainConfig, make_config, scale_schedule
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.tuning.space import (
