@@ -17,7 +17,7 @@ from diamond_sss.evaluation.evaluate import evaluate_scene
 from diamond_sss.gaussians.ply import import_ply
 from diamond_sss.training.checkpoint import optimizer_from_tensors, optimizer_to_tensors
 from diamond_sss.training.config import PRESETS, TrainConfig, make_config
-from diamond_sss.training.runs import load_scene
+from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.schedules import exponential_lr, step_decay
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.utils.io import load_safetensors

@@ -131,7 +131,7 @@ def test_loopback_hosts_and_urls():
 @pytest.mark.parametrize("host, warned", [(None, False), ("0.0.0.0", True)])
 def test_serve_binds_loopback_by_default_and_warns_when_exposed(monkeypatch, capsys, caplog, host, warned):
     pytest.importorskip("viser")
-    from diamond_sss.training import runs
+    from diamond_sss.training import run_folder
     from diamond_sss.viewer import server as server_module
 
     bound = {}
@@ -153,7 +153,7 @@ def test_serve_binds_loopback_by_default_and_warns_when_exposed(monkeypatch, cap
         def refresh(self):
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(runs, "load_scene", lambda run, device: (small_scene(), None))
+    monkeypatch.setattr(run_folder, "load_scene", lambda run, device: (small_scene(), None))
     monkeypatch.setattr(server_module.viser, "ViserServer", FakeServer)
     monkeypatch.setattr(server_module, "SceneViewer", InterruptedViewer)
     kwargs = {} if host is None else {"host": host}
