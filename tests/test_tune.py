@@ -127,7 +127,7 @@ def _scripted_study(tmp_path, capture, monkeypatch, psnr_of_trial, fail_training
     def fake_step(self, scene, optimizers, state, step):
         if current["trial"] in fail_training_of:
             raise FloatingPointError(f"loss is nan at step {step}")
-        return {}
+        return {"total": torch.zeros(())}
 
     def fake_psnr(scene, dataset):
         return psnr_of_trial(current["trial"])
@@ -136,7 +136,7 @@ def _scripted_study(tmp_path, capture, monkeypatch, psnr_of_trial, fail_training
     monkeypatch.setattr(objective_module, "validation_psnr", fake_psnr)
     data = load_tune_data(capture, validation_images=1)
     settings = ObjectiveSettings(overrides={**TINY, "device": "cpu"}, iterations=3, report_every=1)
-    objective = Objective(data, settings, tmp_path / "trials")
+    objective = Objective(data, settings)
 
     def tracked(trial):
         current["trial"] = trial.number

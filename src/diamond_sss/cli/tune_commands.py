@@ -84,7 +84,7 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
     optuna_study = open_study(study_settings, objective_settings.fingerprint(tune_data))
     console = Console(soft_wrap=True)
     if not report_only:
-        objective = Objective(tune_data, objective_settings, Path(out) / "trials")
+        objective = Objective(tune_data, objective_settings)
         ran = run_worker(optuna_study, objective, trials, timeout=timeout,
                          poll_seconds=heartbeat_interval / 2)
         console.print(f"worker {worker} ran trials {ran}")
