@@ -39,7 +39,7 @@ from diamond_sss.diffusion.nvs.rays import view_angle_degrees
 from diamond_sss.evaluation.metrics import image_metrics
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.run import train_run
-from diamond_sss.training.trainer import load_scene
+from diamond_sss.training.run_folder import load_scene
 
 RESULTS = Path(__file__).resolve().parent / "results" / "nvs_quality"
 ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 181))

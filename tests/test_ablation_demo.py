@@ -8,7 +8,7 @@ import pytest
 
 from diamond_sss.cli.main import main
 from diamond_sss.data.analytic import make_capture
-from diamond_sss.evaluation.ablation import regime_slug, run_ablation
+from diamond_sss.experiments.ablation import regime_slug, run_ablation
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from diamond_sss.training import run as run_module
-from diamond_sss.training.run import check_animation_path, write_animation
+from diamond_sss.evaluation.run import check_animation_path, write_animation
 
 
 def frames(count: int = 3, height: int = 9, width: int = 7) -> list[np.ndarray]:

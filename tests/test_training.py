@@ -17,8 +17,9 @@ from diamond_sss.evaluation.evaluate import evaluate_scene
 from diamond_sss.gaussians.ply import import_ply
 from diamond_sss.training.checkpoint import optimizer_from_tensors, optimizer_to_tensors
 from diamond_sss.training.config import PRESETS, TrainConfig, make_config
+from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.schedules import exponential_lr, step_decay
-from diamond_sss.training.trainer import ImageSource, Trainer, load_scene
+from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.utils.io import load_safetensors
 
 TINY = {
@@ -143,6 +144,34 @@ def test_training_improves_the_fit(capture, tmp_path):
     assert trainer.init_source == "visual_hull"
     assert result.num_gaussians == 300  # densify=False keeps the count fixed
     assert {"mv_silhouette", "mv_depth", "raytrace", "mask", "normal"} <= set(result.history[0])
+
+
+def test_step_callback_sees_every_step_and_can_stop_the_run(capture, tmp_path):
+    cfg = make_config("sss3dgs", overrides={**TINY, "iterations": 6, "densify": False, "log_every": 4})
+    dataset = OLATDataset(capture)
+    seen = []
+
+    def stop_at_three(done, scene, terms):
+        seen.append((done, scene.gaussians.num_gaussians, float(terms["total"])))
+        return done == 3
+
+    result = Trainer(cfg, [ImageSource(dataset)], tmp_path / "run", show_progress=False).run(on_step=stop_at_three)
+    assert [done for done, _, _ in seen] == [1, 2, 3] and all(n == 300 for _, n, _ in seen)
+    assert result.steps == 3 and [h["step"] for h in result.history] == [3]
+    assert result.final_loss == pytest.approx(seen[-1][2])
+    summary = json.loads((tmp_path / "run" / "train_summary.json").read_text())
+    assert summary["steps"] == 3 and (tmp_path / "run" / "model.safetensors").is_file()
+    # the same six steps from a given scene, in memory: nothing is written and the scene trains in place
+    straight = Trainer(cfg, [ImageSource(dataset)], tmp_path / "full", show_progress=False)
+    straight.run()
+    in_memory = Trainer(cfg, [ImageSource(dataset)], None, show_progress=False)
+    scene = in_memory.build_scene()
+    in_memory.run(scene=scene)
+    assert in_memory.scene is scene
+    assert torch.equal(scene.gaussians.means, straight.scene.gaussians.means)
+    assert not (tmp_path / "None").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["full", "run"]
+    with pytest.raises(ValueError, match="resuming needs a run_dir"):
+        in_memory.run(resume=True)
 
 
 def test_densification_changes_the_gaussian_count(capture, tmp_path):

@@ -21,6 +21,7 @@ from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.tuning import objective as objective_module
 from diamond_sss.tuning.objective import Objective, ObjectiveSettings
 from diamond_sss.tuning.report import comparison_table
+from diamond_sss.tuning.run import run_study
 from diamond_sss.tuning.space import (
     SEARCH_SPACE,
     distributions,
@@ -128,7 +129,7 @@ def _scripted_study(tmp_path, capture, monkeypatch, psnr_of_trial, fail_training
     def fake_step(self, scene, optimizers, state, step):
         if current["trial"] in fail_training_of:
             raise FloatingPointError(f"loss is nan at step {step}")
-        return {}
+        return {"total": torch.zeros(())}
 
     def fake_psnr(scene, dataset):
         return psnr_of_trial(current["trial"])
@@ -137,7 +138,7 @@ def _scripted_study(tmp_path, capture, monkeypatch, psnr_of_trial, fail_training
     monkeypatch.setattr(objective_module, "validation_psnr", fake_psnr)
     data = load_tune_data(capture, validation_images=1)
     settings = ObjectiveSettings(overrides={**TINY, "device": "cpu"}, iterations=3, report_every=1)
-    objective = Objective(data, settings, tmp_path / "trials")
+    objective = Objective(data, settings)
 
     def tracked(trial):
         current["trial"] = trial.number
@@ -167,6 +168,20 @@ def test_median_pruner_stops_a_poor_trial(capture, tmp_path, monkeypatch):
     assert [t.state for t in study.trials] == [TrialState.COMPLETE, TrialState.COMPLETE, TrialState.PRUNED]
     assert study.trials[0].intermediate_values == {1: 20.0, 2: 20.0, 3: 20.0}
     assert study.trials[2].intermediate_values == {1: 10.0, 2: 10.0}  # warm-up step 1, pruned at step 2
+
+
+def test_run_study_is_the_job_behind_the_cli(capture, tmp_path):
+    data = load_tune_data(capture, validation_images=1)
+    settings = ObjectiveSettings(overrides={**TINY, "device": "cpu"}, iterations=2, report_every=1)
+    study = StudySettings(storage=f"sqlite:///{tmp_path / 'study.db'}", pruner_warmup_steps=2)
+    with pytest.raises(ValueError, match="--trials 1: a study starts with the two preset trials"):
+        run_study(data, tmp_path / "out", settings, study, trials=1)
+    result = run_study(data, tmp_path / "out", settings, study, trials=2)
+    assert result.ran == [0, 1] and [t.user_attrs["preset"] for t in result.study.trials] == ["sss3dgs", "diamond"]
+    assert all(t.intermediate_values.keys() == {1, 2} for t in result.study.trials)
+    assert set(result.paths) == {"plot", "table", "config", "best_trial", "trials"} and all(p.is_file() for p in result.paths.values())
+    again = run_study(data, tmp_path / "out", settings, study, trials=2, report_only=True)
+    assert again.ran == [] and again.study.best_trial.value == result.study.best_trial.value
 
 
 def test_tune_rejects_contradictory_options(capture, tmp_path):

@@ -12,7 +12,7 @@ import torch
 from diamond_sss.data.conventions import look_at_opengl_c2w, opengl_c2w_to_opencv_w2c
 from diamond_sss.data.images import to_srgb8
 from diamond_sss.gaussians.model import GaussianModel
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.model import RelightableScene
 from diamond_sss.viewer import (
     ViewSettings,
     light_from_angles,
@@ -131,7 +131,7 @@ def test_loopback_hosts_and_urls():
 @pytest.mark.parametrize("host, warned", [(None, False), ("0.0.0.0", True)])
 def test_serve_binds_loopback_by_default_and_warns_when_exposed(monkeypatch, capsys, caplog, host, warned):
     pytest.importorskip("viser")
-    from diamond_sss.training import trainer
+    from diamond_sss.training import run_folder
     from diamond_sss.viewer import server as server_module
 
     bound = {}
@@ -153,7 +153,7 @@ def test_serve_binds_loopback_by_default_and_warns_when_exposed(monkeypatch, cap
         def refresh(self):
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(trainer, "load_scene", lambda run, device: (small_scene(), None))
+    monkeypatch.setattr(run_folder, "load_scene", lambda run, device: (small_scene(), None))
     monkeypatch.setattr(server_module.viser, "ViserServer", FakeServer)
     monkeypatch.setattr(server_module, "SceneViewer", InterruptedViewer)
     kwargs = {} if host is None else {"host": host}

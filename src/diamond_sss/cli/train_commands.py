@@ -95,7 +95,7 @@ def evaluate(run: Path, data: Path, split: str = "test", json: bool = False, lpi
         figures: rows of the GT | render | error figure (0: no figures).
         device: auto | cpu | cuda.
     """
-    from diamond_sss.training.run import evaluate_run
+    from diamond_sss.evaluation.run import evaluate_run
 
     summary = evaluate_run(run, data, split=split, lpips_weights=lpips_weights, max_images=max_images,
                            figures=figures, device=device, show_progress=not json)
@@ -144,7 +144,7 @@ def render(run: Path, out: Path, data: Path | None = None, split: str = "test", 
             `video` extra), .gif a GIF.
         device: auto | cpu | cuda.
     """
-    from diamond_sss.training.run import render_run
+    from diamond_sss.evaluation.run import render_run
 
     overrides = {k: v for k, v in (("base_color", base_color or None), ("roughness", roughness),
                                    ("metallic", metallic), ("subsurface", subsurface)) if v is not None}
@@ -162,7 +162,7 @@ def export(run: Path, ply: Path) -> None:
         ply: output .ply path (opens in common 3DGS viewers; colour from the base colour).
     """
     from diamond_sss.gaussians.ply import export_ply
-    from diamond_sss.training.trainer import load_scene
+    from diamond_sss.training.run_folder import load_scene
 
     scene, _ = load_scene(run)
     export_ply(scene.gaussians, ply)
@@ -201,7 +201,7 @@ def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5%,lights=
         seed: seed of every run.
         quiet: no progress bars.
     """
-    from diamond_sss.evaluation.ablation import ablation_table, run_ablation
+    from diamond_sss.experiments.ablation import ablation_table, run_ablation
     from diamond_sss.training.config import parse_sets
 
     rows = run_ablation(data, out, variants=variants, regimes=regimes, iterations=iterations, overrides=parse_sets(set_),

@@ -32,7 +32,7 @@ from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.evaluation.evaluate import render_observation
 from diamond_sss.evaluation.figures import save_image_grid, to_display
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.model import RelightableScene
 from diamond_sss.shading.deferred import backproject_depth
 
 REGIONS = ("background", "silhouette", "back_lit", "shadow", "highlight", "lit")

@@ -32,10 +32,12 @@ from diamond_sss.data.images import load_rgba
 from diamond_sss.data.regimes import farthest_point_order, select_regime
 from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, read_image_manifest
 from diamond_sss.evaluation.metrics import mask_iou
+from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
 from diamond_sss.training.config import make_config
-from diamond_sss.training.run import evaluate_run, train_run
-from diamond_sss.training.trainer import ImageSource, load_scene
+from diamond_sss.training.run import train_run
+from diamond_sss.training.run_folder import load_scene
+from diamond_sss.training.trainer import ImageSource
 from diamond_sss.utils.io import atomic_write_json, sha256_file, sha256_json
 
 AUGMENTS = ("nvs", "relight")

@@ -22,7 +22,7 @@ from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.losses import photometric, regularizers
 from diamond_sss.losses.lpips import LPIPS
 from diamond_sss.losses.photometric import weighted_mean
-from diamond_sss.rendering.relightable import SceneRender
+from diamond_sss.scene.model import SceneRender
 from diamond_sss.training.config import TrainConfig
 
 SMOOTHED_ATTRIBUTES = {

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,7 +31,8 @@ from diamond_sss.gaussians.model import GAUSSIAN_PARAMS, GaussianModel
 from diamond_sss.losses.lpips import load_lpips
 from diamond_sss.losses.multiview import MultiViewConfig, multiview_losses_batched, sample_foreground_pixels
 from diamond_sss.losses.regularizers import raytrace_visibility_loss
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.io import save_scene, scene_from_tensors, scene_tensors
+from diamond_sss.scene.model import RelightableScene
 from diamond_sss.shading.raytrace import raytraced_visibility
 from diamond_sss.shading.sh import visibility_from_sh
 from diamond_sss.training.checkpoint import resume_checkpoint, save_checkpoint
@@ -40,7 +42,8 @@ from diamond_sss.training.loss_log import LossLog
 from diamond_sss.training.objective import TargetBatch, image_objective
 from diamond_sss.training.schedules import exponential_lr, step_decay
 from diamond_sss.utils import rng
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
+from diamond_sss.utils.device import resolve_device
+from diamond_sss.utils.io import atomic_write_json
 
 logger = logging.getLogger(__name__)
 
@@ -67,19 +70,16 @@ class TrainResult:
     history: list[dict] = field(default_factory=list)
 
 
+StepCallback = Callable[[int, RelightableScene, dict[str, Tensor]], bool | None]
+"""Called by :meth:`Trainer.run` after every step with the number of steps done, the scene and the step's
+loss terms and ``total`` (detached scalars on the device; reading one waits for the device). Returning
+``True`` ends the run after that step; an exception raised in it (e.g. Optuna's ``TrialPruned``) ends the
+run without writing the model."""
+
+
 def gaussian_optimizers(optimizers: dict[str, torch.optim.Optimizer]) -> dict[str, torch.optim.Optimizer]:
     """The per-Gaussian-parameter optimisers (what gsplat's strategies edit when they densify or prune)."""
     return {name: optimizers[name] for name in ("means", *GAUSSIAN_LR_KEYS)}
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> CUDA when available, else CPU."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("config 'device' asks for CUDA but torch.cuda.is_available() is False")
-    return device
 
 
 class Trainer:
@@ -88,18 +88,18 @@ class Trainer:
     Args:
         cfg: the resolved configuration.
         sources: image sources; the first is the real capture and defines the lattice.
-        run_dir: output folder (checkpoints, TensorBoard, model, config).
+        run_dir: output folder (checkpoints, TensorBoard, model, config); ``None``: write nothing.
         show_progress: show a tqdm bar.
     """
 
-    def __init__(self, cfg: TrainConfig, sources: list[ImageSource], run_dir: Path,
+    def __init__(self, cfg: TrainConfig, sources: list[ImageSource], run_dir: Path | None,
                  show_progress: bool = True) -> None:
         if not sources or len(sources[0].dataset) == 0:
             raise ValueError("training needs at least one image")
         self.cfg = cfg
         self.sources = sources
         self.lattice = sources[0].dataset
-        self.run_dir = Path(run_dir)
+        self.run_dir = None if run_dir is None else Path(run_dir)
         self.show_progress = show_progress
         self.device = resolve_device(cfg.device)
         if self.device.type == "cpu" and cfg.cpu_threads > 0:
@@ -358,54 +358,44 @@ class Trainer:
         return values
 
     # ------------------------------------------------------------------ the loop
-    def run(self, resume: bool = False) -> TrainResult:
-        """Train for ``cfg.iterations`` steps (continuing from the newest checkpoint when ``resume``)."""
+    def run(self, resume: bool = False, *, scene: RelightableScene | None = None,
+            on_step: StepCallback | None = None) -> TrainResult:
+        """Train for ``cfg.iterations`` steps (continuing from the newest checkpoint when ``resume``).
+
+        ``scene``: start from this scene instead of :meth:`build_scene` (trained in place). ``on_step`` is
+        called after every step (see :data:`StepCallback`); when it returns ``True`` the run ends there.
+        Without a ``run_dir`` nothing is written (no config, logs, checkpoints or model).
+        """
         cfg = self.cfg
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
-        start_step = 0
-        found = resume_checkpoint(self.run_dir) if resume else None
-        if resume and found is None:
-            logger.warning("%s: --resume but no checkpoint in %s: training from step 0", self.run_dir,
-                           self.run_dir / "checkpoints")
-        if found is not None:
-            checkpoint, loaded = found
-            scene = scene_from_tensors(loaded.scene, cfg).to(self.device)
-            optimizers = self.build_optimizers(scene)
-            for name, optimizer in optimizers.items():
-                optimizer.load_state_dict(loaded.optimizers[name])
-            strategy_state = self._initial_strategy_state()
-            strategy_state.update({k: (v.to(self.device) if torch.is_tensor(v) else v)
-                                   for k, v in loaded.strategy.items()})
-            start_step = loaded.step
-            logger.info("%s: resuming from step %d (%s)", self.run_dir, start_step, checkpoint)
-            self.init_source = loaded.extra.get("init_source", "checkpoint")
-            history = loaded.extra.get("history", [])
-            elapsed = float(loaded.extra.get("seconds", 0.0))
-        else:
-            scene = self.build_scene()
-            optimizers = self.build_optimizers(scene)
-            strategy_state = self._initial_strategy_state()
-            history, elapsed = [], 0.0
+        if resume and (scene is not None or self.run_dir is None):
+            raise ValueError("Trainer.run: resuming needs a run_dir and no starting scene")
+        if self.run_dir is not None:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
+        scene, optimizers, strategy_state, start_step, history, elapsed = self._start(resume, scene)
         if self.strategy is not None:
             self.strategy.check_sanity(scene.gaussians.params, gaussian_optimizers(optimizers))
-        writer = _summary_writer(self.run_dir / "tb")
+        self.scene = scene
+        writer = None if self.run_dir is None else _summary_writer(self.run_dir / "tb")
         started = time.perf_counter() - elapsed
         values: dict[str, float] = {"total": float("nan")}
+        done = start_step
         self.loss_log = LossLog()
         bar = tqdm(range(start_step, cfg.iterations), initial=start_step, total=cfg.iterations,
                    disable=not self.show_progress, desc="train", dynamic_ncols=True)
         for step in bar:
             try:
-                self.loss_log.record(step, self.training_step(scene, optimizers, strategy_state, step))
+                terms = self.training_step(scene, optimizers, strategy_state, step)
+                self.loss_log.record(step, terms)
             except Exception:
                 self.loss_log.flush()  # a non-finite loss before the failure is the better diagnosis
                 raise
             done = step + 1
-            checkpoint_due = done % cfg.checkpoint_every == 0 and done < cfg.iterations
-            if done % cfg.log_every == 0 or done == cfg.iterations or checkpoint_due:
+            last = (on_step is not None and bool(on_step(done, scene, terms))) or done == cfg.iterations
+            checkpoint_due = (self.run_dir is not None and done % cfg.checkpoint_every == 0 and not last)
+            if done % cfg.log_every == 0 or last or checkpoint_due:
                 values = self.loss_log.flush()
-            if done % cfg.log_every == 0 or done == cfg.iterations:
+            if done % cfg.log_every == 0 or last:
                 record = {"step": done, "gaussians": scene.gaussians.num_gaussians,
                           "light_scale": float(scene.light_scale.detach()), **values}
                 history.append(record)
@@ -414,26 +404,58 @@ class Trainer:
                     for key, value in record.items():
                         if key != "step":
                             writer.add_scalar(f"train/{key}", value, done)
-            if writer is not None and (done % cfg.image_log_every == 0 or done == cfg.iterations):
+            if writer is not None and (done % cfg.image_log_every == 0 or last):
                 self._log_images(writer, scene, done)
             if checkpoint_due:
                 save_checkpoint(self.run_dir, done, scene_tensors(scene), optimizers, strategy_state,
                                 {"init_source": self.init_source, "history": history,
                                  "seconds": time.perf_counter() - started})
-        seconds = time.perf_counter() - started
+            if last:
+                break
+        bar.close()
+        result = TrainResult(steps=done, seconds=time.perf_counter() - started,
+                             num_gaussians=scene.gaussians.num_gaussians, final_loss=values["total"],
+                             history=history)
         if writer is not None:
             writer.close()
+        if self.run_dir is not None:
+            self._save_outputs(scene, result)
+        return result
+
+    def _start(self, resume: bool, scene: RelightableScene | None) -> tuple:
+        """The scene, optimisers, strategy state, first step, history and seconds already spent."""
+        found = resume_checkpoint(self.run_dir) if resume else None
+        if resume and found is None:
+            logger.warning("%s: --resume but no checkpoint in %s: training from step 0", self.run_dir,
+                           self.run_dir / "checkpoints")
+        if found is None:
+            if scene is None:
+                scene = self.build_scene()
+            else:
+                self.init_source = "given"
+            return scene, self.build_optimizers(scene), self._initial_strategy_state(), 0, [], 0.0
+        checkpoint, loaded = found
+        scene = scene_from_tensors(loaded.scene, self.cfg).to(self.device)
+        optimizers = self.build_optimizers(scene)
+        for name, optimizer in optimizers.items():
+            optimizer.load_state_dict(loaded.optimizers[name])
+        strategy_state = self._initial_strategy_state()
+        strategy_state.update({k: (v.to(self.device) if torch.is_tensor(v) else v)
+                               for k, v in loaded.strategy.items()})
+        logger.info("%s: resuming from step %d (%s)", self.run_dir, loaded.step, checkpoint)
+        self.init_source = loaded.extra.get("init_source", "checkpoint")
+        return (scene, optimizers, strategy_state, loaded.step, loaded.extra.get("history", []),
+                float(loaded.extra.get("seconds", 0.0)))
+
+    def _save_outputs(self, scene: RelightableScene, result: TrainResult) -> None:
+        """``model.safetensors`` and ``train_summary.json`` of a finished run."""
         save_scene(self.run_dir / "model.safetensors", scene)
-        result = TrainResult(steps=cfg.iterations, seconds=seconds, num_gaussians=scene.gaussians.num_gaussians,
-                             final_loss=values["total"], history=history)
         atomic_write_json(self.run_dir / "train_summary.json", {
             "steps": result.steps, "seconds": round(result.seconds, 3), "num_gaussians": result.num_gaussians,
             "final_loss": result.final_loss, "init_source": self.init_source, "device": str(self.device),
             "images": {f"source_{i}": len(s.dataset) for i, s in enumerate(self.sources)},
-            "history": history,
+            "history": result.history,
         })
-        self.scene = scene
-        return result
 
     def _initial_strategy_state(self) -> dict:
         if self.strategy is None:
@@ -458,34 +480,3 @@ def _summary_writer(path: Path):
         return None
     return SummaryWriter(str(path))
 
-
-def scene_tensors(scene: RelightableScene) -> dict[str, Tensor]:
-    """All scene tensors by ``state_dict`` name (Gaussians, MLP, light scale)."""
-    return {k: v.detach() for k, v in scene.state_dict().items()}
-
-
-def scene_from_tensors(tensors: dict[str, Tensor], cfg: TrainConfig) -> RelightableScene:
-    """Rebuild a scene from :func:`scene_tensors` (Gaussian count taken from the tensors)."""
-    prefix = "gaussians.params."
-    model = GaussianModel.from_state_tensors({k[len(prefix):]: v for k, v in tensors.items()
-                                              if k.startswith(prefix)})
-    scene = RelightableScene(model, sss_width=cfg.sss_width, light_init=cfg.light_init,
-                             mixed_precision=cfg.mixed_precision)
-    scene.load_state_dict(tensors)
-    return scene
-
-
-def save_scene(path: Path, scene: RelightableScene) -> Path:
-    """The trained scene as one safetensors file."""
-    return atomic_save_safetensors(path, scene_tensors(scene), metadata={"format": "diamond-sss-scene-v1"})
-
-
-def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[RelightableScene, TrainConfig]:
-    """The trained scene and configuration of a run folder."""
-    from diamond_sss.training.config import load_run_config
-
-    cfg = load_run_config(run_dir)
-    path = Path(run_dir) / "model.safetensors"
-    if not path.is_file():
-        raise ValueError(f"{run_dir}: no trained model ({path} is missing; is the run finished?)")
-    return scene_from_tensors(load_safetensors(path), cfg).to(device), cfg

@@ -1,9 +1,9 @@
 """The objective of a trial: train a short reconstruction, report validation PSNR to the pruner.
 
 Each trial resolves ``preset`` + fixed ``overrides`` + the sampled parameters (schedule keys scaled, see
-:func:`~diamond_sss.training.config.scale_schedule`), drives :meth:`Trainer.training_step` for ``iterations``
-steps and, every ``report_every`` steps and at the end, reports the mean validation PSNR (dB) so a median
-pruner can stop it. A non-finite loss or render raises :class:`FloatingPointError`: the study records the
+:func:`~diamond_sss.training.config.scale_schedule`), trains with :meth:`Trainer.run` (no run folder: a trial
+writes no checkpoint, log or model) for ``iterations`` steps and, from the trainer's step callback every
+``report_every`` steps and at the end, reports the mean validation PSNR (dB) so a median pruner can stop it. A non-finite loss or render raises :class:`FloatingPointError`: the study records the
 trial as failed (with the reason in the user attribute ``failure``) and goes on.
 """
 
@@ -17,12 +17,11 @@ import socket
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import optuna
 
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.model import RelightableScene
 from diamond_sss.training.config import TrainConfig, make_config, scale_schedule
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.tuning.space import (
@@ -91,15 +90,13 @@ class Objective:
     Args:
         data: training and validation images.
         settings: how trials train.
-        work_dir: parent of the trials' run folders (a trial writes no checkpoint, log or model).
         space: the searched keys.
     """
 
-    def __init__(self, data: TuneData, settings: ObjectiveSettings, work_dir: Path,
+    def __init__(self, data: TuneData, settings: ObjectiveSettings,
                  space: Mapping[str, ParamRange] = SEARCH_SPACE) -> None:
         self.data = data
         self.settings = settings
-        self.work_dir = Path(work_dir)
         self.space = space
         self._initial_scenes: dict[tuple, RelightableScene] = {}
 
@@ -127,18 +124,12 @@ class Objective:
 
     def train_and_score(self, trial: optuna.Trial, cfg: TrainConfig) -> float:
         """Train ``cfg`` and report; raises ``TrialPruned`` when the pruner says so."""
-        trainer = Trainer(cfg, [ImageSource(self.data.train)], self.work_dir / f"trial_{trial.number:05d}",
-                          show_progress=False)
-        scene = self.initial_scene(trainer)
-        optimizers = trainer.build_optimizers(scene)
-        strategy_state = {} if trainer.strategy is None else trainer.strategy.initialize_state(
-            scene_scale=trainer.bounds.radius)
-        value = math.nan
-        for step in range(cfg.iterations):
-            trainer.training_step(scene, optimizers, strategy_state, step)
-            done = step + 1
+        trainer = Trainer(cfg, [ImageSource(self.data.train)], None, show_progress=False)
+        reported = {"value": math.nan}
+
+        def report(done: int, scene: RelightableScene, terms: dict) -> bool:
             if done % self.settings.report_every and done != cfg.iterations:
-                continue
+                return False
             value = validation_psnr(scene, self.data.validation)
             if not math.isfinite(value):
                 raise FloatingPointError(f"validation PSNR is {value} at step {done}")
@@ -146,4 +137,8 @@ class Objective:
             trial.set_user_attr("gaussians", scene.gaussians.num_gaussians)
             if trial.should_prune():
                 raise optuna.TrialPruned(f"pruned at step {done} with validation PSNR {value:.3f} dB")
-        return value
+            reported["value"] = value
+            return False
+
+        trainer.run(scene=self.initial_scene(trainer), on_step=report)
+        return reported["value"]

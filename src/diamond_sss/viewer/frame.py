@@ -18,7 +18,7 @@ from diamond_sss.data.conventions import intrinsics_from_fov
 from diamond_sss.data.images import to_srgb8
 from diamond_sss.evaluation.evaluate import DECOMPOSITION, decomposition_maps
 from diamond_sss.evaluation.figures import to_display
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.model import RelightableScene
 
 CHANNELS = ("radiance", *DECOMPOSITION)
 """What the viewer can show: the shaded image or one map of the decomposition."""

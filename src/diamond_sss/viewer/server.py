@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import viser
 
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.model import RelightableScene
 from diamond_sss.viewer.frame import (
     CHANNELS,
     ViewSettings,
@@ -154,7 +154,8 @@ def serve(
     fps: float = 30.0,
 ) -> None:
     """Serve ``run`` at ``http://host:port`` until interrupted (Ctrl-C)."""
-    from diamond_sss.training.trainer import load_scene, resolve_device
+    from diamond_sss.training.run_folder import load_scene
+    from diamond_sss.utils.device import resolve_device
 
     scene, _ = load_scene(Path(run), resolve_device(device))
     if not is_loopback(host):
