@@ -8,7 +8,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from diamond_sss.training import run as run_module
+from diamond_sss.evaluation import run as run_module
 from diamond_sss.evaluation.run import check_animation_path, write_animation
 
 
