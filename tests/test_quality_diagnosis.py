@@ -105,7 +105,7 @@ def test_srgb_photometric_space_weighs_dark_errors_more():
     from diamond_sss.losses.photometric import photometric_loss
     from diamond_sss.training import objective
 
-    assert make_config("diamond").photometric_space == "linear"
+    assert make_config("diamond").photometric_space == "srgb"  # as the SSS-3DGS release
     with pytest.raises(ValueError, match="photometric_space"):
         make_config("diamond", overrides={"photometric_space": "log"})
     target = torch.full((1, 16, 16, 3), 0.01)

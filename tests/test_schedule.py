@@ -10,11 +10,11 @@ from diamond_sss.cli.main import main
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.training.config import scale_schedule, scaled_run_schedule, schedule_for, short_schedule
 
-DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged: the demo must not change
+DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, and the short-run model (issue 17)
     "iterations": 1000, "position_lr_max_steps": 1000, "batch_size": 1, "num_gaussians": 3000,
     "max_gaussians": 8000, "densify_from_iter": 250, "densify_until_iter": 850, "densification_interval": 125,
     "opacity_reset_interval": 10001, "mv_pairs_per_step": 1, "mv_pixels_per_pair": 256, "raytrace_gaussians": 512,
-    "log_every": 50, "checkpoint_every": 500,
+    "log_every": 50, "checkpoint_every": 500, "sss_lr": 0.005, "sss_width": 64, "lambda_incident_light": 0.0,
 }
 
 
