@@ -165,3 +165,23 @@ def test_epoch_order_is_a_permutation_drawn_once_per_epoch():
     order = [seeded_epoch_indices(step, 1, 7, seed=3)[0] for step in range(14)]
     assert sorted(order[:7]) == sorted(order[7:]) == list(range(7)) and order[:7] != order[7:]
     assert seeded_epoch_indices(2, 3, 7, seed=3) == order[6:9]
+
+
+def test_resume_with_other_settings_is_refused_naming_them(tmp_path):
+    from diamond_sss.data.analytic import make_capture
+    from diamond_sss.data.dataset import OLATDataset
+    from diamond_sss.training.config import make_config
+    from diamond_sss.training.run_folder import changed_settings
+    from diamond_sss.training.trainer import ImageSource, Trainer
+
+    make_capture(tmp_path / "data", views=4, lights=2, size=16)
+    sources = [ImageSource(OLATDataset(tmp_path / "data", "train"))]
+    base = {"iterations": 2, "num_gaussians": 50, "batch_size": 1, "checkpoint_every": 1, "lambda_lpips": 0.0,
+            "densify": False}
+    Trainer(make_config("diamond", overrides=base), sources, tmp_path / "run", show_progress=False).run()
+    longer = make_config("diamond", overrides={**base, "iterations": 3})
+    assert changed_settings(tmp_path / "run", longer) == {}  # a longer run may resume
+    Trainer(longer, sources, tmp_path / "run", show_progress=False).run(resume=True)
+    wider = make_config("diamond", overrides={**base, "iterations": 3, "sss_width": 16})
+    with pytest.raises(ValueError, match=r"other settings \(sss_width: 32 -> 16\)"):
+        Trainer(wider, sources, tmp_path / "run", show_progress=False).run(resume=True)

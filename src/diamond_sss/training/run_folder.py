@@ -21,3 +21,28 @@ def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[Relig
     if not path.is_file():
         raise ValueError(f"{run_dir}: no trained model ({path} is missing; is the run finished?)")
     return read_scene(path, cfg, device), cfg
+
+
+RESUMABLE_KEYS = frozenset({"iterations", "log_every", "checkpoint_every", "image_log_every", "device",
+                            "cpu_threads"})
+"""Settings a resumed run may change: its length, logging and where it runs; any other change would continue a
+model with settings it was not trained with (or fail to load it, e.g. another MLP width)."""
+
+
+def changed_settings(run_dir: Path, cfg: TrainConfig) -> dict[str, tuple]:
+    """``key -> (recorded, given)`` for the settings of ``cfg`` that differ from those the run folder records
+    (empty when it records none), :data:`RESUMABLE_KEYS` aside."""
+    if not (Path(run_dir) / "config.json").is_file():
+        return {}
+    recorded, given = load_run_config(run_dir).to_dict(), cfg.to_dict()
+    return {key: (recorded[key], value) for key, value in given.items()
+            if key not in RESUMABLE_KEYS and recorded.get(key) != value}
+
+
+def check_resumable(run_dir: Path, cfg: TrainConfig) -> None:
+    """Refuse to resume ``run_dir`` with other settings than it was trained with, naming them."""
+    changed = changed_settings(run_dir, cfg)
+    if changed:
+        listed = ", ".join(f"{key}: {old!r} -> {new!r}" for key, (old, new) in sorted(changed.items()))
+        raise ValueError(f"{run_dir} was trained with other settings ({listed}); resume it with the same settings "
+                         "or train into another --out")

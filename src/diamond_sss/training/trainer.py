@@ -40,6 +40,7 @@ from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.lattice import unify_lattices
 from diamond_sss.training.loss_log import LossLog
 from diamond_sss.training.objective import TargetBatch, image_objective
+from diamond_sss.training.run_folder import check_resumable
 from diamond_sss.training.schedules import exponential_lr, step_decay
 from diamond_sss.utils import rng
 from diamond_sss.utils.device import resolve_device
@@ -370,6 +371,8 @@ class Trainer:
         if resume and (scene is not None or self.run_dir is None):
             raise ValueError("Trainer.run: resuming needs a run_dir and no starting scene")
         if self.run_dir is not None:
+            if resume:
+                check_resumable(self.run_dir, cfg)
             self.run_dir.mkdir(parents=True, exist_ok=True)
             atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
         scene, optimizers, strategy_state, start_step, history, elapsed = self._start(resume, scene)
