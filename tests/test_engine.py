@@ -118,6 +118,9 @@ def test_resume_without_a_checkpoint_says_so(capture, tmp_path, caplog):
     cfg = make_config("diamond", overrides={**TINY, "iterations": 1, "log_every": 1})
     trainer = Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False)
     with caplog.at_level(logging.WARNING, logger="diamond_sss.training.trainer"):
+        trainer.run(resume=True)  # a new folder: nothing to say
+        assert "no checkpoint" not in caplog.text
+        (tmp_path / "run" / "model.safetensors").unlink()  # an earlier run that left no checkpoint
         trainer.run(resume=True)
     assert "no checkpoint" in caplog.text and "step 0" in caplog.text
 

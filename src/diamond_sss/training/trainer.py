@@ -370,12 +370,13 @@ class Trainer:
         cfg = self.cfg
         if resume and (scene is not None or self.run_dir is None):
             raise ValueError("Trainer.run: resuming needs a run_dir and no starting scene")
+        earlier_run = self.run_dir is not None and (self.run_dir / "config.json").is_file()
         if self.run_dir is not None:
             if resume:
                 check_resumable(self.run_dir, cfg)
             self.run_dir.mkdir(parents=True, exist_ok=True)
             atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
-        scene, optimizers, strategy_state, start_step, history, elapsed = self._start(resume, scene)
+        scene, optimizers, strategy_state, start_step, history, elapsed = self._start(resume, scene, earlier_run)
         if self.strategy is not None:
             self.strategy.check_sanity(scene.gaussians.params, gaussian_optimizers(optimizers))
         self.scene = scene
@@ -425,10 +426,13 @@ class Trainer:
             self._save_outputs(scene, result)
         return result
 
-    def _start(self, resume: bool, scene: RelightableScene | None) -> tuple:
-        """The scene, optimisers, strategy state, first step, history and seconds already spent."""
+    def _start(self, resume: bool, scene: RelightableScene | None, earlier_run: bool) -> tuple:
+        """The scene, optimisers, strategy state, first step, history and seconds already spent.
+
+        Resuming a folder that an earlier run left without a checkpoint says so (a new folder is silent).
+        """
         found = resume_checkpoint(self.run_dir) if resume else None
-        if resume and found is None:
+        if resume and found is None and earlier_run:
             logger.warning("%s: --resume but no checkpoint in %s: training from step 0", self.run_dir,
                            self.run_dir / "checkpoints")
         if found is None:
