@@ -31,7 +31,8 @@ from diamond_sss.evaluation.noise import noise_ceiling
 from diamond_sss.evaluation.regions import region_errors, save_region_figure
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.experiments.ablation import regime_slug
-from diamond_sss.training.config import parse_value, short_schedule
+from diamond_sss.training.config import short_schedule
+from diamond_sss.training.overrides import parse_value
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
 

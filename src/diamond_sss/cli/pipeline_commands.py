@@ -43,7 +43,7 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         quiet: no progress bars.
     """
     from diamond_sss.pipeline.run import PipelineConfig, parse_augment, run_pipeline
-    from diamond_sss.training.config import parse_sets
+    from diamond_sss.training.overrides import parse_sets
 
     stages = parse_augment(augment)
     overrides = parse_sets(set_)

@@ -11,7 +11,8 @@ import torch
 
 from diamond_sss.scene.io import read_scene
 from diamond_sss.scene.model import RelightableScene
-from diamond_sss.training.config import TrainConfig, load_run_config
+from diamond_sss.training.config import TrainConfig
+from diamond_sss.training.overrides import load_run_config
 
 
 def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[RelightableScene, TrainConfig]:
@@ -20,4 +21,4 @@ def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[Relig
     path = Path(run_dir) / "model.safetensors"
     if not path.is_file():
         raise ValueError(f"{run_dir}: no trained model ({path} is missing; is the run finished?)")
-    return read_scene(path, cfg, device), cfg
+    return read_scene(path, cfg.shading, device), cfg
