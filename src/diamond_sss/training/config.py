@@ -15,6 +15,7 @@ Values given as text or JSON are checked and applied by :mod:`diamond_sss.traini
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import typing
 from collections.abc import Mapping
@@ -237,8 +238,10 @@ def canonical_key(key: str) -> str:
         return key
     if key in FLAT_KEYS:
         return FLAT_KEYS[key]
+    names = (*FIELDS, *FLAT_KEYS)
     stem = key.split(".")[-1].split("_")[-1]
-    close = [name for name in (*FIELDS, *FLAT_KEYS) if stem in name][:6]
+    close = difflib.get_close_matches(key, names, n=6, cutoff=0.7)
+    close = [*close, *(name for name in names if stem in name and name not in close)][:6]
     raise ValueError(f"unknown config key '{key}'" + (f"; similar keys: {close}" if close else ""))
 
 
