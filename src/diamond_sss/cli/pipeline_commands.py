@@ -7,7 +7,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from diamond_sss.cli.train_commands import SetArg
+from diamond_sss.cli.options import SetArg
 
 
 def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lights=5%", preset: str = "diamond",
