@@ -106,7 +106,8 @@ def test_cli_help_imports_no_heavy_package():
     script = (
         "import contextlib, io, sys\n"
         "import diamond_sss.cli.main as cli\n"
-        "for argv in (['--help'], ['train', '--help'], ['synth', '--help'], ['nvs', '--help']):\n"
+        "for argv in (['--help'], ['train', '--help'], ['synth', '--help'], ['nvs', '--help'], ['run', '--help'],\n"
+        "             ['finetune-nvs', '--help'], ['finetune-relight', '--help']):\n"
         "    try:\n"
         "        with contextlib.redirect_stdout(io.StringIO()):\n"
         "            cli.main(argv)\n"

@@ -34,33 +34,12 @@ from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, read_image_mani
 from diamond_sss.evaluation.metrics import mask_iou
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
+from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
 from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.trainer import ImageSource
 from diamond_sss.utils.io import atomic_write_json, sha256_file, sha256_json
-
-AUGMENTS = ("nvs", "relight")
-
-
-@dataclass
-class PipelineConfig:
-    """Settings of :func:`run_pipeline` besides the reconstruction's own configuration."""
-
-    augment: tuple[str, ...] = AUGMENTS
-    prelim_iterations: int | None = None
-    nvs_views: int = 12
-    relight_lights: int = 8
-    nvs_model: str | None = None
-    relight_model: str | None = None
-    nvs_steps: int = 1
-    relight_steps: int = 1
-    relight_samples: int = 8
-    nvs_guidance: float = 1.0
-    min_silhouette_iou: float = 0.5
-    min_mask_fraction: float = 0.002
-    cache_dir: str | None = None
-    device: str = "cpu"
 
 
 @dataclass

@@ -22,11 +22,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from diamond_sss.utils.fields import described
+
 
 def _key(default: Any, meaning: str, flat: str | None = None) -> Any:
     """A config field with its meaning (``diamond-sss config`` and ``--set`` read it) and, where it differs
     from the field name, its ``flat`` name in the single-level layout of earlier runs."""
-    return field(default=default, metadata={"help": meaning, **({"flat": flat} if flat else {})})
+    return described(default, meaning, **({"flat": flat} if flat else {}))
 
 
 @dataclass
