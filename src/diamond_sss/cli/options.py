@@ -17,16 +17,20 @@ SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
 """``--set key=value`` (repeatable), parsed by :func:`diamond_sss.training.overrides.parse_sets`."""
 
 
-def options_of(config: type, exclude: Collection[str] = ()) -> type:
-    """A dataclass of ``config``'s fields (but ``exclude``) for tyro: the same names, types and defaults, with
-    each field's ``metadata["help"]`` as its help text, so that a default and its meaning live once, in
-    ``config``. Pass it as an ``Annotated[..., tyro.conf.OmitArgPrefixes]`` parameter to keep flat flag names;
-    :func:`config_from` turns the parsed options back into ``config``."""
+def options_of(config: type, exclude: Collection[str] = (), include: Collection[str] | None = None) -> type:
+    """A dataclass of ``config``'s fields (those in ``include`` if given, but ``exclude``) for tyro: the same
+    names, types and defaults, with each field's ``metadata["help"]`` or else its entry in the ``Attributes:``
+    of ``config``'s docstring as help text, so that a default and its meaning live once, in ``config``. Pass it
+    as an ``Annotated[..., tyro.conf.OmitArgPrefixes]`` parameter to keep flat flag names; :func:`config_from`
+    turns the parsed options back into ``config``."""
     hints = typing.get_type_hints(config)
     specs = [(f.name, Annotated[hints[f.name], tyro.conf.arg(help=f.metadata.get("help") or None)],
               dataclasses.field(default=f.default, default_factory=f.default_factory))
-             for f in dataclasses.fields(config) if f.name not in exclude]
-    return dataclasses.make_dataclass(f"{config.__name__}Options", specs)
+             for f in dataclasses.fields(config)
+             if f.name not in exclude and (include is None or f.name in include)]
+    options = dataclasses.make_dataclass(f"{config.__name__}Options", specs)
+    options.__doc__ = config.__doc__
+    return options
 
 
 def config_from(config: type, options: Any, **rest: Any) -> Any:
