@@ -183,10 +183,8 @@ def load_run_config(run: Path) -> TrainConfig:
     path = Path(run) / "config.json"
     if not path.is_file():
         raise ValueError(f"{run} is not a training run: {path} is missing")
-    saved = read_json(path)
-    if not isinstance(saved, dict):
-        raise DataError(f"{path}: expected a JSON object of config keys")
     try:
-        return make_config("diamond", overrides=saved)
+        return make_config("diamond", config_file=path)
     except ValueError as exc:
-        raise DataError(f"{path}: {exc}") from exc
+        message = str(exc)
+        raise DataError(message if message.startswith(f"{path}:") else f"{path}: {message}") from exc
