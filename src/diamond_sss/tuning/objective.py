@@ -48,7 +48,7 @@ class ObjectiveSettings:
         overrides: fixed TrainConfig values of every trial (e.g. ``num_gaussians``, ``device``).
         iterations: training steps of a trial.
         report_every: steps between validation PSNR reports (plus one at the end).
-        schedule_scale: factor on iteration-valued keys; ``None``: ``iterations / TrainConfig.iterations``.
+        schedule_scale: factor on iteration-valued keys; ``None``: ``iterations / schedule.iterations`` (10000).
     """
 
     preset: str = "diamond"
