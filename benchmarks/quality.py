@@ -31,7 +31,8 @@ from diamond_sss.evaluation.noise import noise_ceiling
 from diamond_sss.evaluation.regions import region_errors, save_region_figure
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.experiments.ablation import regime_slug
-from diamond_sss.training.config import parse_value, short_schedule
+from diamond_sss.training.config import short_schedule
+from diamond_sss.training.overrides import parse_sets
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
 
@@ -44,13 +45,10 @@ TRAIN_IMAGES = 96
 def parse_variant(text: str) -> tuple[str, dict]:
     """``"name:key=value,key=value"`` (or just ``"name"``) -> ``(name, typed overrides)``."""
     name, _, body = text.partition(":")
-    overrides = {}
-    for item in filter(None, body.split(",")):
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--variants {text!r}: expected key=value, got {item!r}")
-        overrides[key.strip()] = parse_value(key.strip(), value)
-    return name, overrides
+    try:
+        return name, parse_sets([item for item in body.split(",") if item])
+    except ValueError as exc:
+        raise SystemExit(f"--variants {text!r}: {exc}") from exc
 
 
 def settings_hash(preset: str, overrides: dict) -> str:

@@ -7,7 +7,6 @@ import math
 import os
 import subprocess
 import sys
-from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,8 @@ from diamond_sss.cli.main import main
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.data.embedded import embedded_dataset
 from diamond_sss.data.images import write_png
-from diamond_sss.training.config import TrainConfig, describe_config, make_config, parse_sets
+from diamond_sss.training.config import FIELDS, FLAT_KEYS
+from diamond_sss.training.overrides import describe_config, make_config, parse_sets
 
 
 def test_info_prints_bounds_as_text_without_negative_zero(capsys):
@@ -55,11 +55,14 @@ def test_set_refuses_non_finite_integers_and_config_files(tmp_path):
 
 def test_config_lists_every_key_with_its_preset_value_and_meaning(capsys):
     rows = describe_config("sss3dgs")
-    assert [key for key, _, _ in rows] == [f.name for f in fields(TrainConfig)]
-    values = {key: value for key, value, _ in rows}
-    assert values["densify_grad_threshold"] == 0.0002 and values["lambda_sil"] == 0.0
-    assert describe_config("diamond")[0] == ("iterations", 10_000, "training steps")
-    assert all(meaning and not meaning.endswith(".") for _, _, meaning in rows)
+    assert [key for key, _, _, _ in rows] == list(FIELDS) and len(rows) == 73
+    assert [flat for _, flat, _, _ in rows] == list(FLAT_KEYS)
+    values = {key: value for key, _, value, _ in rows}
+    assert values["densify.grow_grad2d"] == 0.0002 and values["losses.lambda_sil"] == 0.0
+    assert describe_config("diamond")[0] == ("schedule.iterations", "iterations", 10_000, "training steps")
+    assert ("densify.refine_every", "densification_interval", 100,
+            "steps between densifications") in rows
+    assert all(meaning and not meaning.endswith(".") for _, _, _, meaning in rows)
     main(["config", "--preset", "sss3dgs", "--json"])
     assert json.loads(capsys.readouterr().out) == values
     main(["config", "--preset", "diamond"])
@@ -103,7 +106,8 @@ def test_cli_help_imports_no_heavy_package():
     script = (
         "import contextlib, io, sys\n"
         "import diamond_sss.cli.main as cli\n"
-        "for argv in (['--help'], ['train', '--help'], ['synth', '--help'], ['nvs', '--help']):\n"
+        "for argv in (['--help'], ['train', '--help'], ['synth', '--help'], ['nvs', '--help'], ['run', '--help'],\n"
+        "             ['finetune-nvs', '--help'], ['finetune-relight', '--help']):\n"
         "    try:\n"
         "        with contextlib.redirect_stdout(io.StringIO()):\n"
         "            cli.main(argv)\n"

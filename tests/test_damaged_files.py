@@ -16,7 +16,7 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.errors import DamagedFileError, DataError
 from diamond_sss.training.checkpoint import checkpoint_folders, load_checkpoint, resume_checkpoint
-from diamond_sss.training.config import make_config
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.utils import io as io_module
 from diamond_sss.utils.io import atomic_save_safetensors, load_safetensors, read_json

@@ -14,8 +14,8 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.gaussians.model import nearest_neighbor_scales
 from diamond_sss.training.checkpoint import checkpoint_folders
-from diamond_sss.training.config import make_config
 from diamond_sss.training.loss_log import LossLog
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.utils import rng
 
@@ -156,7 +156,7 @@ def test_the_default_preset_trains_on_cuda(capture, tmp_path):
 
 @pytest.mark.parametrize("value", [-0.5, float("nan")])
 def test_synthetic_weight_is_checked_in_the_config_not_in_the_step(value):
-    from diamond_sss.training.config import make_config
+    from diamond_sss.training.overrides import make_config
 
     with pytest.raises(ValueError, match="synthetic_weight"):
         make_config("diamond", overrides={"synthetic_weight": value})

@@ -488,7 +488,7 @@ def test_one_list_of_gaussian_parameters_gives_shapes_ply_fields_and_learning_ra
     from dataclasses import fields
 
     from diamond_sss.gaussians.model import GAUSSIAN_PARAMS
-    from diamond_sss.training.config import TrainConfig
+    from diamond_sss.training.config import LearningRates
     from diamond_sss.training.trainer import GAUSSIAN_LR_KEYS
 
     assert list(PARAM_SHAPES) == [param.name for param in GAUSSIAN_PARAMS]
@@ -497,4 +497,4 @@ def test_one_list_of_gaussian_parameters_gives_shapes_ply_fields_and_learning_ra
     for param in GAUSSIAN_PARAMS:
         assert len(param.ply) == math.prod(param.shape), param.name
     assert list(GAUSSIAN_LR_KEYS) == [name for name in PARAM_SHAPES if name != "means"]
-    assert set(GAUSSIAN_LR_KEYS.values()) <= {f.name for f in fields(TrainConfig)}
+    assert set(GAUSSIAN_LR_KEYS.values()) <= {f.name for f in fields(LearningRates)}

@@ -18,7 +18,7 @@ from diamond_sss.data.errors import DataError
 from diamond_sss.evaluation.noise import TWO_RENDERS_DB, noise_ceiling
 from diamond_sss.evaluation.regions import REGIONS, RegionErrors, error_regions
 from diamond_sss.synth.render import image_seed, noise_reference_config, plan_pairs
-from diamond_sss.training.config import make_config
+from diamond_sss.training.overrides import make_config
 
 
 def _plane_view(size: int = 12):
@@ -105,7 +105,7 @@ def test_srgb_photometric_space_weighs_dark_errors_more():
     from diamond_sss.losses.photometric import photometric_loss
     from diamond_sss.training import objective
 
-    assert make_config("diamond").photometric_space == "srgb"  # as the SSS-3DGS release
+    assert make_config("diamond").losses.photometric_space == "srgb"  # as the SSS-3DGS release
     with pytest.raises(ValueError, match="photometric_space"):
         make_config("diamond", overrides={"photometric_space": "log"})
     target = torch.full((1, 16, 16, 3), 0.01)

@@ -8,7 +8,8 @@ import pytest
 
 from diamond_sss.cli.main import main
 from diamond_sss.data.analytic import make_capture
-from diamond_sss.training.config import scale_schedule, scaled_run_schedule, schedule_for, short_schedule
+from diamond_sss.training.config import scale_schedule, schedule_for, short_schedule
+from diamond_sss.training.overrides import load_run_config, scaled_run_schedule
 
 DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, and the short-run model (issue 17)
     "iterations": 1000, "position_lr_max_steps": 1000, "batch_size": 1, "num_gaussians": 3000,
@@ -47,16 +48,16 @@ def test_scale_schedule_rounds_down_keeps_zero_and_other_keys():
 
 def test_run_schedule_scales_the_preset_and_config_file_but_not_set_keys(tmp_path):
     scaled, changes = scaled_run_schedule("diamond", 1000)
-    assert scaled["iterations"] == 1000 and scaled["densify_from_iter"] == 50
-    assert (scaled["densify_until_iter"], scaled["densification_interval"]) == (1000, 15)
-    assert (scaled["checkpoint_every"], scaled["position_lr_max_steps"]) == (50, 3000)
-    assert scaled["opacity_reset_interval"] == 200  # 100 scaled, kept at the recovery floor
-    assert changes["densify_from_iter"] == (500, 50) and "position_lr_delay_steps" not in changes
+    assert scaled["schedule.iterations"] == 1000 and scaled["densify.refine_start_iter"] == 50
+    assert (scaled["densify.refine_stop_iter"], scaled["densify.refine_every"]) == (1000, 15)
+    assert (scaled["runtime.checkpoint_every"], scaled["lr.position_max_steps"]) == (50, 3000)
+    assert scaled["densify.reset_every"] == 200  # 100 scaled, kept at the recovery floor
+    assert changes["densify.refine_start_iter"] == (500, 50) and "lr.position_delay_steps" not in changes
     best = tmp_path / "best.json"
     best.write_text(json.dumps({"densify_from_iter": 800}))
     scaled, _ = scaled_run_schedule("sss3dgs", 500, config_file=best, sets=["checkpoint_every=7"])
-    assert scaled["densify_from_iter"] == 40 and scaled["densify_until_iter"] == 750
-    assert "checkpoint_every" not in scaled
+    assert scaled["densify.refine_start_iter"] == 40 and scaled["densify.refine_stop_iter"] == 750
+    assert "runtime.checkpoint_every" not in scaled
 
 
 @pytest.mark.parametrize("keep", [False, True])
@@ -68,13 +69,14 @@ def test_train_iterations_scales_the_schedule_unless_kept(tmp_path, capsys, keep
     main(["train", "--data", str(tmp_path / "data"), "--out", str(run), "--iterations", "4", "--quiet",
           "--set", "log_every=2", *tiny, *(["--keep-schedule"] if keep else [])])
     out = capsys.readouterr().out
-    config = json.loads((run / "config.json").read_text())
+    assert json.loads((run / "config.json").read_text())["schedule"]["iterations"] == 4  # written nested
+    config = load_run_config(run).flat()
     assert config["iterations"] == 4 and config["log_every"] == 2
     if keep:
         assert "schedule scaled" not in out
         assert (config["densify_from_iter"], config["checkpoint_every"]) == (500, 500)
     else:
         assert "schedule scaled to 4 steps" in " ".join(out.split())
-        assert "densify_from_iter 500->1" in " ".join(out.split())
+        assert "densify.refine_start_iter 500->1" in " ".join(out.split())
         assert (config["densify_from_iter"], config["densify_until_iter"], config["checkpoint_every"]) == (1, 4, 1)
         assert (run / "checkpoints" / "latest.json").is_file()

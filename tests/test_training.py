@@ -16,7 +16,8 @@ from diamond_sss.data.analytic import make_capture
 from diamond_sss.evaluation.evaluate import evaluate_scene
 from diamond_sss.gaussians.ply import import_ply
 from diamond_sss.training.checkpoint import optimizer_from_tensors, optimizer_to_tensors
-from diamond_sss.training.config import PRESETS, TrainConfig, make_config
+from diamond_sss.training.config import PRESETS, TrainConfig
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.schedules import exponential_lr, step_decay
 from diamond_sss.training.trainer import ImageSource, Trainer
@@ -42,32 +43,37 @@ def test_presets_follow_the_supplement():
     best = make_config("diamond")
     original = make_config("sss3dgs")
     # Tab. 4, "Best" and "Original"
-    assert (best.lambda_dssim, best.lambda_lpips, best.lambda_normal) == (0.492, 0.171, 0.037)
-    assert (original.lambda_dssim, original.lambda_lpips, original.lambda_normal) == (0.2, 0.2, 0.02)
-    assert (best.densify_until_iter, original.densify_until_iter) == (10_000, 15_000)
-    assert (best.densify_grad_threshold, original.densify_grad_threshold) == (0.001, 0.0002)
-    assert (best.opacity_reset_interval, original.opacity_reset_interval) == (1_000, 3_000)
-    assert (best.lambda_sil, best.lambda_depth, original.lambda_sil, original.lambda_depth) == (0.5, 0.3, 0, 0)
+    assert (best.losses.lambda_dssim, best.losses.lambda_lpips, best.losses.lambda_normal) == (0.492, 0.171, 0.037)
+    assert (original.losses.lambda_dssim, original.losses.lambda_lpips,
+            original.losses.lambda_normal) == (0.2, 0.2, 0.02)
+    assert (best.densify.refine_stop_iter, original.densify.refine_stop_iter) == (10_000, 15_000)
+    assert (best.densify.grow_grad2d, original.densify.grow_grad2d) == (0.001, 0.0002)
+    assert (best.densify.reset_every, original.densify.reset_every) == (1_000, 3_000)
+    assert (best.losses.lambda_sil, best.losses.lambda_depth,
+            original.losses.lambda_sil, original.losses.lambda_depth) == (0.5, 0.3, 0, 0)
     # Tab. 3
-    assert (best.position_lr_init, best.position_lr_final, best.position_lr_max_steps) == (0.00016, 1.6e-6, 30_000)
-    assert (best.opacity_lr, best.scaling_lr, best.sss_width, best.light_init) == (0.05, 0.005, 32, -1.0)
-    assert set(PRESETS["sss3dgs"]) <= set(TrainConfig().to_dict())
+    assert (best.lr.position_init, best.lr.position_final, best.lr.position_max_steps) == (0.00016, 1.6e-6, 30_000)
+    assert (best.lr.opacity, best.lr.scaling, best.shading.sss_width,
+            best.shading.light_init) == (0.05, 0.005, 32, -1.0)
+    assert PRESETS["diamond"] == TrainConfig() and best == PRESETS["diamond"]
+    best.losses.lambda_dssim = 0.9  # a resolved config is a copy: changing it leaves the preset alone
+    assert make_config("diamond").losses.lambda_dssim == PRESETS["diamond"].losses.lambda_dssim == 0.492
 
 
 def test_overrides_sets_and_config_files(tmp_path):
     cfg = make_config("sss3dgs", sets=["lambda_dssim=0.3", "densify=false", "iterations=1e3"])
-    assert (cfg.lambda_dssim, cfg.densify, cfg.iterations) == (0.3, False, 1000)
+    assert (cfg.losses.lambda_dssim, cfg.densify.enabled, cfg.schedule.iterations) == (0.3, False, 1000)
     path = tmp_path / "best.json"
     path.write_text(json.dumps({"lambda_normal": 0.05, "densification_interval": 120}))
     cfg = make_config("diamond", config_file=path, sets=["lambda_normal=0.06"])
-    assert (cfg.lambda_normal, cfg.densification_interval) == (0.06, 120)
+    assert (cfg.losses.lambda_normal, cfg.densify.refine_every) == (0.06, 120)
     with pytest.raises(ValueError, match="unknown config key 'lambda_dsim'"):
         make_config(sets=["lambda_dsim=0.3"])
     with pytest.raises(ValueError, match="'iterations' expects int, got '1.5'"):
         make_config(sets=["iterations=1.5"])
     with pytest.raises(ValueError, match="--set expects key=value"):
         make_config(sets=["lambda_dssim"])
-    with pytest.raises(ValueError, match="'lambda_mask' must be >= 0"):
+    with pytest.raises(ValueError, match="config key 'losses.lambda_mask' must be >= 0"):
         make_config(sets=["lambda_mask=-1"])
     path.write_text(json.dumps({"lambda_normal": "high"}))
     with pytest.raises(ValueError, match=r"best.json: config key 'lambda_normal' expects float"):
@@ -202,7 +208,7 @@ def _train_eval_render_export(capture, tmp_path, capsys):
           "--iterations", "3", "--quiet", *sets])
     regime = json.loads((run / "regime.json").read_text())
     assert len(regime["views"]) == 3 and regime["images"] == 9
-    assert json.loads((run / "config.json").read_text())["iterations"] == 3
+    assert json.loads((run / "config.json").read_text())["schedule"]["iterations"] == 3
     capsys.readouterr()
     main(["eval", "--run", str(run), "--data", str(capture), "--split", "test", "--json"])
     metrics = json.loads(capsys.readouterr().out)

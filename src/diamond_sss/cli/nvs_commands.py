@@ -8,25 +8,21 @@ from typing import Annotated
 import tyro
 from rich.console import Console
 
+from diamond_sss.cli.options import config_from, options_of
+from diamond_sss.diffusion.nvs.config import FinetuneConfig, NVSConfig
+
+FinetuneOptions = options_of(FinetuneConfig, exclude=("model",))
+NVSModelOptions = options_of(NVSConfig, include=("space", "image_size", "prediction_type", "hint_residual"))
+
 
 def finetune_nvs(
     out: Path,
     data: list[Path] | None = None,
-    steps: int = 1000,
-    objects_per_batch: int = 4,
-    views_per_object: int = 4,
-    learning_rate: float = 1e-4,
-    warmup_steps: int = 100,
-    image_size: int = 32,
-    space: str = "pixel",
-    prediction_type: str = "epsilon",
     warp_hint: bool | None = None,
-    hint_residual: bool = False,
     vae: Path | None = None,
-    gradient_checkpointing: bool = True,
-    checkpoint_every: int = 200,
-    seed: int = 0,
     resume: bool = True,
+    training: Annotated[FinetuneOptions, tyro.conf.OmitArgPrefixes] = FinetuneOptions(),  # noqa: B008
+    model: Annotated[NVSModelOptions, tyro.conf.OmitArgPrefixes] = NVSModelOptions(),  # noqa: B008
 ) -> None:
     """Fine-tune the Free3D-style novel-view model on fixed-illumination multi-view sequences.
 
@@ -35,51 +31,24 @@ def finetune_nvs(
     Args:
         out: run folder.
         data: OLAT data folders (default: the embedded fine-tuning objects).
-        steps: optimisation steps.
-        objects_per_batch: objects per step (one sequence each).
-        views_per_object: target views per object (all share one timestep).
-        learning_rate: AdamW learning rate after warm-up.
-        warmup_steps: linear warm-up steps.
-        image_size: side of the generated images (pixels; latent space: 8x the latent side).
-        space: pixel (small offline default) or latent (needs --vae).
-        prediction_type: epsilon (Free3D's objective) or v_prediction (steadier for small pixel models).
         warp_hint: feed the reference forward-warped with its stored depth maps (default: on in pixel space;
             pixel space only).
-        hint_residual: denoise the residual from the warped reference where it is valid (needs the warp hint).
         vae: local diffusers AutoencoderKL folder for latent space.
-        gradient_checkpointing: recompute activations of every ResNet/transformer block in the backward pass.
-        checkpoint_every: steps between atomic checkpoints.
-        seed: seed of the model initialisation and of the sampled training stream.
         resume: continue from the newest checkpoint in --out.
+        training: fine-tuning settings (FinetuneConfig).
+        model: the model's settings (NVSConfig).
     """
     from diamond_sss.data.embedded import FINETUNE_PREFIX, embedded_dataset, embedded_dataset_names
-    from diamond_sss.diffusion.nvs.model import NVSConfig
-    from diamond_sss.diffusion.nvs.train import FinetuneConfig, finetune
+    from diamond_sss.diffusion.nvs.train import finetune
 
     if data is None:
         names = [n for n in embedded_dataset_names() if n.startswith(FINETUNE_PREFIX)]
         data = [embedded_dataset(n) for n in names]
     if not data:
         raise ValueError("no fine-tuning data: pass --data or install the embedded fine-tuning objects")
-    model = NVSConfig(
-        space=space,
-        image_size=image_size,
-        vae_path=None if vae is None else str(vae),
-        prediction_type=prediction_type,
-        warp_hint=space == "pixel" if warp_hint is None else warp_hint,
-        hint_residual=hint_residual,
-    )
-    config = FinetuneConfig(
-        steps=steps,
-        objects_per_batch=objects_per_batch,
-        views_per_object=views_per_object,
-        learning_rate=learning_rate,
-        warmup_steps=warmup_steps,
-        gradient_checkpointing=gradient_checkpointing,
-        checkpoint_every=checkpoint_every,
-        seed=seed,
-        model=model,
-    )
+    nvs_config = config_from(NVSConfig, model, vae_path=None if vae is None else str(vae),
+                             warp_hint=model.space == "pixel" if warp_hint is None else warp_hint)
+    config = config_from(FinetuneConfig, training, model=nvs_config)
     console = Console()
     folder = finetune(data, out, config, resume=resume, log=console.print)
     console.print(f"model -> {folder}")

@@ -5,15 +5,11 @@ from __future__ import annotations
 import json as json_module
 import math
 from pathlib import Path
-from typing import Annotated
 
-import tyro
 from rich.console import Console
 from rich.table import Table
 
-SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
-                  tyro.conf.arg(name="set", help="override a config key: --set key=value (every key, its "
-                                                 "default and meaning: diamond-sss config)")]
+from diamond_sss.cli.options import SetArg
 
 
 def train(data: Path, out: Path, split: str = "train", regime: str = "all", preset: str = "diamond",
@@ -38,7 +34,7 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
         device: auto | cpu | cuda.
         quiet: no progress bar.
     """
-    from diamond_sss.training.config import scaled_run_schedule
+    from diamond_sss.training.overrides import scaled_run_schedule
     from diamond_sss.training.run import train_run
 
     console = Console(soft_wrap=True)
@@ -64,17 +60,18 @@ def config(preset: str = "diamond", json: bool = False) -> None:
         preset: hyperparameter preset whose values to show: diamond or sss3dgs.
         json: print a JSON object of key -> value instead of a table.
     """
-    from diamond_sss.training.config import describe_config
+    from diamond_sss.training.overrides import describe_config
 
     rows = describe_config(preset)
     if json:
-        print(json_module.dumps({key: value for key, value, _ in rows}, indent=2))
+        print(json_module.dumps({key: value for key, _, value, _ in rows}, indent=2))
         return
-    table = Table(title=f"config keys, preset '{preset}' (change with --set key=value)")
-    for column in ("key", "value", "meaning"):
-        table.add_column(column)
-    for key, value, meaning in rows:
-        table.add_row(key, str(value), meaning)
+    table = Table(title=f"config keys, preset '{preset}' (change with --set key=value or --set flat_name=value)")
+    table.add_column("key", no_wrap=True)
+    table.add_column("value")
+    table.add_column("meaning [flat name]")
+    for key, flat, value, meaning in rows:
+        table.add_row(key, str(value), f"{meaning} [{flat}]")
     Console(soft_wrap=True).print(table)
 
 
@@ -202,7 +199,7 @@ def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5%,lights=
         quiet: no progress bars.
     """
     from diamond_sss.experiments.ablation import ablation_table, run_ablation
-    from diamond_sss.training.config import parse_sets
+    from diamond_sss.training.overrides import parse_sets
 
     rows = run_ablation(data, out, variants=variants, regimes=regimes, iterations=iterations, overrides=parse_sets(set_),
                         seed=seed, show_progress=not quiet)

@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
 
 import tyro
 from rich.console import Console
 
-SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
-                  tyro.conf.arg(name="set", help="fix a config key of all trials: --set key=value (keys: diamond-sss config)")]
+from diamond_sss.cli.options import SetArg
 
 
 def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: str | None = None,
@@ -53,7 +51,8 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
         import optuna  # noqa: F401
     except ImportError as exc:
         raise ValueError("diamond-sss tune needs Optuna: pip install 'diamond-sss[tune]'") from exc
-    from diamond_sss.training.config import parse_value
+    from diamond_sss.training.config import canonical_key
+    from diamond_sss.training.overrides import make_config, parse_sets
     from diamond_sss.tuning.objective import ObjectiveSettings
     from diamond_sss.tuning.run import run_study
     from diamond_sss.tuning.space import SEARCH_SPACE
@@ -61,19 +60,17 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
     from diamond_sss.tuning.validation import load_tune_data
 
     overrides = {"seed": seed, "device": device}
-    for item in set_:
-        if "=" not in item:
-            raise ValueError(f"--set expects key=value, got '{item}'")
-        key, text = (part.strip() for part in item.split("=", 1))
-        if key in SEARCH_SPACE or key == "iterations":
-            reason = "searched" if key in SEARCH_SPACE else "set by --iterations"
+    searched = {canonical_key(key) for key in SEARCH_SPACE}
+    for key, value in parse_sets(set_).items():
+        if canonical_key(key) in searched or canonical_key(key) == "schedule.iterations":
+            reason = "searched" if canonical_key(key) in searched else "set by --iterations"
             raise ValueError(f"--set {key}: '{key}' is {reason}")
-        overrides[key] = parse_value(key, text)
+        overrides[key] = value
     objective_settings = ObjectiveSettings(preset=preset, overrides=overrides, iterations=iterations,
                                            report_every=report_every, schedule_scale=schedule_scale)
     tune_data = load_tune_data(data, split=split, regime=regime, seed=seed,
                                validation_images=validation_images,
-                               downscale=float(overrides.get("downscale", 1.0)))
+                               downscale=make_config(preset, overrides=overrides).runtime.downscale)
     study_settings = StudySettings(storage=storage or default_storage(out), study_name=study, seed=seed,
                                    worker=worker, pruner_startup_trials=pruner_startup_trials,
                                    pruner_warmup_steps=report_every + 1,

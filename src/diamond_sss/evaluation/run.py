@@ -30,7 +30,7 @@ def evaluate_run(run: Path, data: Path, *, split: str = "test", lpips_weights: s
                  show_progress: bool = True) -> dict:
     """Evaluate a run on ``split``; writes ``<run>/eval_<split>/`` and returns the summary."""
     scene, cfg = load_scene(run, resolve_device(device))
-    dataset = OLATDataset(data, split, downscale=cfg.downscale)
+    dataset = OLATDataset(data, split, downscale=cfg.runtime.downscale)
     evaluation = evaluate_scene(scene, dataset, lpips_weights=lpips_weights, max_images=max_images,
                                 show_progress=show_progress)
     out_dir = Path(run) / f"eval_{split}"
@@ -94,7 +94,7 @@ def render_run(run: Path, out: Path, *, data: Path | None = None, split: str = "
     dev = next(scene.parameters()).device
     if data is None:
         data = Path(read_json(run / "data.json")["data"])
-    dataset = OLATDataset(data, split, downscale=cfg.downscale)
+    dataset = OLATDataset(data, split, downscale=cfg.runtime.downscale)
     if len(lights) % 3 != 0:
         raise ValueError(f"--light expects x y z triples, got {len(lights)} numbers")
     light_list = [torch.tensor(lights[i:i + 3], dtype=torch.float32) for i in range(0, len(lights), 3)]

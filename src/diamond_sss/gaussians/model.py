@@ -45,7 +45,8 @@ NUM_VISIBILITY_SH = (VISIBILITY_SH_DEGREE + 1) ** 2
 @dataclass(frozen=True)
 class GaussianParam:
     """One raw (pre-activation) per-Gaussian parameter: its per-Gaussian trailing ``shape``, its property names
-    in a PLY file and the training config field of its learning rate (``None``: the positions' own schedule)."""
+    in a PLY file and the field of ``TrainConfig.lr`` holding its learning rate (``None``: the positions' own
+    schedule)."""
 
     name: str
     shape: tuple[int, ...]
@@ -59,15 +60,15 @@ def _numbered(prefix: str, count: int) -> tuple[str, ...]:
 
 GAUSSIAN_PARAMS: tuple[GaussianParam, ...] = (
     GaussianParam("means", (3,), ("x", "y", "z"), None),
-    GaussianParam("scales", (3,), _numbered("scale", 3), "scaling_lr"),
-    GaussianParam("quats", (4,), _numbered("rot", 4), "rotation_lr"),
-    GaussianParam("opacities", (), ("opacity",), "opacity_lr"),
-    GaussianParam("normals", (3,), ("nx", "ny", "nz"), "normal_lr"),
-    GaussianParam("base_color", (3,), _numbered("base_color", 3), "base_color_lr"),
-    GaussianParam("roughness", (1,), ("roughness",), "roughness_lr"),
-    GaussianParam("metallic", (1,), ("metallic",), "metallic_lr"),
-    GaussianParam("subsurface", (1,), ("subsurface",), "subsurfacedness_lr"),
-    GaussianParam("visibility_sh", (NUM_VISIBILITY_SH,), _numbered("vis_sh", NUM_VISIBILITY_SH), "visibility_lr"),
+    GaussianParam("scales", (3,), _numbered("scale", 3), "scaling"),
+    GaussianParam("quats", (4,), _numbered("rot", 4), "rotation"),
+    GaussianParam("opacities", (), ("opacity",), "opacity"),
+    GaussianParam("normals", (3,), ("nx", "ny", "nz"), "normal"),
+    GaussianParam("base_color", (3,), _numbered("base_color", 3), "base_color"),
+    GaussianParam("roughness", (1,), ("roughness",), "roughness"),
+    GaussianParam("metallic", (1,), ("metallic",), "metallic"),
+    GaussianParam("subsurface", (1,), ("subsurface",), "subsurfacedness"),
+    GaussianParam("visibility_sh", (NUM_VISIBILITY_SH,), _numbered("vis_sh", NUM_VISIBILITY_SH), "visibility"),
 )
 """The raw parameters of a Gaussian, in storage order: the one list the shapes, the PLY fields and the
 learning-rate keys are read from."""

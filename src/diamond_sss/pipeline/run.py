@@ -34,33 +34,12 @@ from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, read_image_mani
 from diamond_sss.evaluation.metrics import mask_iou
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
-from diamond_sss.training.config import make_config
+from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.trainer import ImageSource
 from diamond_sss.utils.io import atomic_write_json, sha256_file, sha256_json
-
-AUGMENTS = ("nvs", "relight")
-
-
-@dataclass
-class PipelineConfig:
-    """Settings of :func:`run_pipeline` besides the reconstruction's own configuration."""
-
-    augment: tuple[str, ...] = AUGMENTS
-    prelim_iterations: int | None = None
-    nvs_views: int = 12
-    relight_lights: int = 8
-    nvs_model: str | None = None
-    relight_model: str | None = None
-    nvs_steps: int = 1
-    relight_steps: int = 1
-    relight_samples: int = 8
-    nvs_guidance: float = 1.0
-    min_silhouette_iou: float = 0.5
-    min_mask_fraction: float = 0.002
-    cache_dir: str | None = None
-    device: str = "cpu"
 
 
 @dataclass
@@ -190,7 +169,7 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     out.mkdir(parents=True, exist_ok=True)
     overrides = {**(overrides or {}), "seed": seed}
     train_cfg = make_config(preset, overrides=overrides)
-    real = OLATDataset(data, split, downscale=train_cfg.downscale)
+    real = OLATDataset(data, split, downscale=train_cfg.runtime.downscale)
     selection = select_regime(real, regime, seed)
     model_hashes = {}
     if "nvs" in cfg.augment:
@@ -331,8 +310,8 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     extra = []
     if generated:
         write_capture(out / "synthetic", "train", real, generated)
-        extra = [ImageSource(OLATDataset(out / "synthetic", "train", downscale=train_cfg.downscale),
-                             train_cfg.synthetic_weight)]
+        extra = [ImageSource(OLATDataset(out / "synthetic", "train", downscale=train_cfg.runtime.downscale),
+                             train_cfg.losses.synthetic_weight)]
     final_dir = out / "final"
     stage("final", lambda: {"real_images": len(selection.observations), "synthetic_images": len(generated),
                             "dropped": dict(dropped),

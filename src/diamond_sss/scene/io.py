@@ -16,7 +16,7 @@ SCENE_FORMAT = "diamond-sss-scene-v1"
 
 
 class SceneSettings(Protocol):
-    """The configuration keys a scene is built with (``TrainConfig`` has them)."""
+    """The configuration keys a scene is built with (``TrainConfig.shading`` has them)."""
 
     sss_width: int
     light_init: float

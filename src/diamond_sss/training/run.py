@@ -8,7 +8,7 @@ from typing import Any
 
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.regimes import select_regime
-from diamond_sss.training.config import make_config
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer, TrainResult
 from diamond_sss.utils.io import atomic_write_json
 
@@ -23,8 +23,8 @@ def train_run(data: Path, out: Path, *, split: str = "train", regime: str = "all
     images), ``data.json`` (where the data came from) and, when done, ``model.safetensors``.
     """
     cfg = make_config(preset, overrides=overrides, config_file=config_file, sets=sets)
-    dataset = OLATDataset(data, split, downscale=cfg.downscale)
-    selection = select_regime(dataset, regime, cfg.seed)
+    dataset = OLATDataset(data, split, downscale=cfg.runtime.downscale)
+    selection = select_regime(dataset, regime, cfg.schedule.seed)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "regime.json", selection.to_json())

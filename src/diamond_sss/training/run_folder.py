@@ -11,7 +11,8 @@ import torch
 
 from diamond_sss.scene.io import read_scene
 from diamond_sss.scene.model import RelightableScene
-from diamond_sss.training.config import TrainConfig, load_run_config
+from diamond_sss.training.config import TrainConfig
+from diamond_sss.training.overrides import load_run_config
 
 
 def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[RelightableScene, TrainConfig]:
@@ -20,7 +21,7 @@ def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[Relig
     path = Path(run_dir) / "model.safetensors"
     if not path.is_file():
         raise ValueError(f"{run_dir}: no trained model ({path} is missing; is the run finished?)")
-    return read_scene(path, cfg, device), cfg
+    return read_scene(path, cfg.shading, device), cfg
 
 
 RESUMABLE_KEYS = frozenset({"iterations", "log_every", "checkpoint_every", "image_log_every", "device",
@@ -30,11 +31,11 @@ model with settings it was not trained with (or fail to load it, e.g. another ML
 
 
 def changed_settings(run_dir: Path, cfg: TrainConfig) -> dict[str, tuple]:
-    """``key -> (recorded, given)`` for the settings of ``cfg`` that differ from those the run folder records
-    (empty when it records none), :data:`RESUMABLE_KEYS` aside."""
+    """``flat key -> (recorded, given)`` for the settings of ``cfg`` that differ from those the run folder
+    records (empty when it records none), :data:`RESUMABLE_KEYS` aside."""
     if not (Path(run_dir) / "config.json").is_file():
         return {}
-    recorded, given = load_run_config(run_dir).to_dict(), cfg.to_dict()
+    recorded, given = load_run_config(run_dir).flat(), cfg.flat()
     return {key: (recorded[key], value) for key, value in given.items()
             if key not in RESUMABLE_KEYS and recorded.get(key) != value}
 

@@ -102,9 +102,9 @@ class Trainer:
         self.lattice = sources[0].dataset
         self.run_dir = None if run_dir is None else Path(run_dir)
         self.show_progress = show_progress
-        self.device = resolve_device(cfg.device)
-        if self.device.type == "cpu" and cfg.cpu_threads > 0:
-            torch.set_num_threads(cfg.cpu_threads)
+        self.device = resolve_device(cfg.runtime.device)
+        if self.device.type == "cpu" and cfg.runtime.cpu_threads > 0:
+            torch.set_num_threads(cfg.runtime.cpu_threads)
         self.index = [(s, i) for s, source in enumerate(sources) for i in range(len(source.dataset))]
         self.bounds = self.lattice.bounds
         self.union = unify_lattices([source.dataset for source in sources])
@@ -117,20 +117,17 @@ class Trainer:
         self.view_silhouettes = self._view_silhouettes()
         self._target_silhouettes: dict[int, Tensor] = {}
         self.loss_log = LossLog()
-        self.lpips = load_lpips(cfg.lpips_weights or None) if cfg.lambda_lpips > 0 else None
+        self.lpips = load_lpips(cfg.runtime.lpips_weights or None) if cfg.losses.lambda_lpips > 0 else None
         if self.lpips is not None:
             self.lpips = self.lpips.to(self.device)
+        mv = cfg.multiview
         self.mv_cfg = MultiViewConfig(
-            pairs_per_step=cfg.mv_pairs_per_step, pixels_per_pair=cfg.mv_pixels_per_pair,
-            target_mode=cfg.mv_target_mode, nearest_k=cfg.mv_nearest_k, sil_threshold=cfg.mv_sil_threshold,
-            occlusion_tol=cfg.mv_occlusion_tol,
-            charbonnier_eps=cfg.mv_charbonnier_eps if cfg.mv_charbonnier_eps > 0 else None,
+            pairs_per_step=mv.pairs_per_step, pixels_per_pair=mv.pixels_per_pair, target_mode=mv.target_mode,
+            nearest_k=mv.nearest_k, sil_threshold=mv.sil_threshold, occlusion_tol=mv.occlusion_tol,
+            charbonnier_eps=mv.charbonnier_eps if mv.charbonnier_eps > 0 else None,
         )
-        self.strategy = DefaultStrategy(
-            prune_opa=0.005, grow_grad2d=cfg.densify_grad_threshold, grow_scale3d=cfg.percent_dense,
-            refine_start_iter=cfg.densify_from_iter, refine_stop_iter=cfg.densify_until_iter,
-            reset_every=cfg.opacity_reset_interval, refine_every=cfg.densification_interval, verbose=False,
-        ) if cfg.densify else None
+        self.strategy = (DefaultStrategy(**cfg.densify.strategy_kwargs(), verbose=False)
+                         if cfg.densify.enabled else None)
 
     # ------------------------------------------------------------------ set-up
     def _view_silhouettes(self) -> dict[int, Tensor]:
@@ -145,16 +142,16 @@ class Trainer:
     def build_scene(self) -> RelightableScene:
         """Initial Gaussians (points3d.ply, visual hull of the training masks, or random) and a fresh MLP."""
         cfg = self.cfg
-        torch.manual_seed(cfg.seed)
-        generator = torch.Generator().manual_seed(cfg.seed)
+        torch.manual_seed(cfg.schedule.seed)
+        generator = torch.Generator().manual_seed(cfg.schedule.seed)
         views = sorted({obs.view for obs in self.lattice.observations})
-        use_ply = cfg.init in ("auto", "ply")
-        use_hull = cfg.init in ("auto", "hull")
+        use_ply = cfg.gaussians.init in ("auto", "ply")
+        use_hull = cfg.gaussians.init in ("auto", "hull")
         ply = self.lattice.root / "points3d.ply"
-        if cfg.init == "ply" and not ply.is_file():
+        if cfg.gaussians.init == "ply" and not ply.is_file():
             raise ValueError(f"config init='ply' but {ply} does not exist")
         points = initial_points(
-            num_points=cfg.num_gaussians, bounds_center=self.bounds.center, bounds_radius=self.bounds.radius,
+            num_points=cfg.gaussians.count, bounds_center=self.bounds.center, bounds_radius=self.bounds.radius,
             points3d_path=ply if use_ply else None,
             masks=torch.stack([self.view_silhouettes[v].cpu() for v in views]) if use_hull else None,
             w2c=self.lattice.viewmats[views] if use_hull else None,
@@ -163,10 +160,11 @@ class Trainer:
         )
         self.init_source = points.source
         model = GaussianModel.from_points(points.points, points.colors, points.normals, generator=generator)
-        light_init = self.calibrated_light_init() if cfg.light_init_from_data else cfg.light_init
-        return RelightableScene(model, sss_width=cfg.sss_width, light_init=light_init,
+        shading = cfg.shading
+        light_init = self.calibrated_light_init() if shading.light_init_from_data else shading.light_init
+        return RelightableScene(model, sss_width=shading.sss_width, light_init=light_init,
                                 scene_center=self.bounds.center, scene_radius=self.bounds.radius,
-                                mixed_precision=cfg.mixed_precision).to(self.device)
+                                mixed_precision=shading.mixed_precision).to(self.device)
 
     def calibrated_light_init(self, max_images: int = 64) -> float:
         """``log`` of a global light scale matched to the capture's units (Tab. 3's ``light_init`` = -1 is
@@ -184,7 +182,7 @@ class Trainer:
             intensities.append(dataset.light_intensities[sample.light].mean())
         foreground = torch.cat(values)
         if foreground.numel() == 0:
-            return self.cfg.light_init
+            return self.cfg.shading.light_init
         q99 = float(torch.quantile(foreground[:1_000_000], 0.99))
         return float(torch.log(torch.tensor(2.0 * max(q99, 1e-4)) / torch.stack(intensities).mean().clamp_min(1e-8)))
 
@@ -194,24 +192,24 @@ class Trainer:
         params = scene.gaussians.params
         fused = {"fused": True} if self.device.type == "cuda" else {}
         optimizers: dict[str, torch.optim.Optimizer] = {
-            "means": torch.optim.Adam([params["means"]], lr=cfg.position_lr_init * self.bounds.radius,
+            "means": torch.optim.Adam([params["means"]], lr=cfg.lr.position_init * self.bounds.radius,
                                       eps=1e-15, **fused),
         }
         for name, key in GAUSSIAN_LR_KEYS.items():
-            optimizers[name] = torch.optim.Adam([params[name]], lr=getattr(cfg, key), eps=1e-15, **fused)
-        optimizers["mlp"] = torch.optim.Adam(scene.mlp.parameters(), lr=cfg.sss_lr, **fused)
-        optimizers["light"] = torch.optim.Adam([scene.log_light_scale], lr=cfg.light_lr, **fused)
+            optimizers[name] = torch.optim.Adam([params[name]], lr=getattr(cfg.lr, key), eps=1e-15, **fused)
+        optimizers["mlp"] = torch.optim.Adam(scene.mlp.parameters(), lr=cfg.lr.sss, **fused)
+        optimizers["light"] = torch.optim.Adam([scene.log_light_scale], lr=cfg.lr.light, **fused)
         return optimizers
 
     def set_learning_rates(self, optimizers: dict[str, torch.optim.Optimizer], step: int) -> None:
         cfg = self.cfg
-        decay = step_decay(step, cfg.lr_decay_step, cfg.lr_decay_factor)
-        rates = {name: getattr(cfg, key) * decay for name, key in GAUSSIAN_LR_KEYS.items()}
+        decay = step_decay(step, cfg.lr.decay_step, cfg.lr.decay_factor)
+        rates = {name: getattr(cfg.lr, key) * decay for name, key in GAUSSIAN_LR_KEYS.items()}
         rates["means"] = self.bounds.radius * exponential_lr(
-            step, cfg.position_lr_init, cfg.position_lr_final, cfg.position_lr_max_steps,
-            cfg.position_lr_delay_steps, cfg.position_lr_delay_mult)
-        rates["mlp"] = cfg.sss_lr * decay
-        rates["light"] = cfg.light_lr * decay
+            step, cfg.lr.position_init, cfg.lr.position_final, cfg.lr.position_max_steps,
+            cfg.lr.position_delay_steps, cfg.lr.position_delay_mult)
+        rates["mlp"] = cfg.lr.sss * decay
+        rates["light"] = cfg.lr.light * decay
         for name, optimizer in optimizers.items():
             for group in optimizer.param_groups:
                 group["lr"] = rates[name]
@@ -224,8 +222,9 @@ class Trainer:
         multi-view pixel sampling.
         """
         cfg = self.cfg
-        generator = rng.stream_generator(cfg.seed, step, 0)
-        picks = [self.index[i] for i in seeded_epoch_indices(step, cfg.batch_size, len(self.index), cfg.seed)]
+        generator = rng.stream_generator(cfg.schedule.seed, step, 0)
+        picks = [self.index[i] for i in seeded_epoch_indices(step, cfg.schedule.batch_size, len(self.index),
+                                                             cfg.schedule.seed)]
         rgbs, masks, weights, views, lights = [], [], [], [], []
         for source_index, obs_index in picks:
             source = self.sources[source_index]
@@ -238,7 +237,7 @@ class Trainer:
         rgb = torch.stack(rgbs).to(self.device)
         host_masks = torch.stack(masks)
         mask = host_masks.to(self.device)
-        if cfg.random_background:
+        if cfg.shading.random_background:
             background = rng.rand(len(picks), 1, 1, 3, generator=generator, device=self.device)
             rgb = rgb + (1.0 - mask) * background
         views_t = torch.tensor(views, device=self.device)
@@ -253,40 +252,40 @@ class Trainer:
         """Eq. A.7 on a random subset of Gaussians: towards the batch's lights and random directions."""
         cfg = self.cfg
         g = scene.gaussians
-        generator = rng.stream_generator(cfg.seed, step, 1, self.device)
-        count = min(cfg.raytrace_gaussians, g.num_gaussians)
+        generator = rng.stream_generator(cfg.schedule.seed, step, 1, self.device)
+        count = min(cfg.raytrace.gaussians, g.num_gaussians)
         subset = rng.randperm(g.num_gaussians, generator=generator)[:count]
         with torch.no_grad():
             traced = raytraced_visibility(g.means.detach(), g.quats.detach(), g.scales.detach(),
-                                          g.opacities.detach(), light_positions, num_samples=cfg.raytrace_directions,
+                                          g.opacities.detach(), light_positions, num_samples=cfg.raytrace.directions,
                                           generator=generator, normals=g.normals.detach(), sources=subset)
         predicted = visibility_from_sh(g.visibility_sh[subset][:, None, :], traced.dirs)
-        return cfg.lambda_visibility * raytrace_visibility_loss(predicted, traced.visibility)
+        return cfg.losses.lambda_visibility * raytrace_visibility_loss(predicted, traced.visibility)
 
     def multiview_terms(self, scene: RelightableScene, render, target: TargetBatch,
                         step: int) -> dict[str, Tensor]:
         """Silhouette and depth consistency between batch views (sources) and nearby lattice views."""
         cfg = self.cfg
-        generator = rng.stream_generator(cfg.seed, step, 2)
-        candidates = torch.arange(self.union.num_views) if cfg.mv_include_unobserved_views else torch.tensor(
+        generator = rng.stream_generator(cfg.schedule.seed, step, 2)
+        candidates = torch.arange(self.union.num_views) if cfg.multiview.include_unobserved_views else torch.tensor(
             sorted(self.view_silhouettes))
         centers = self.camera_centers
         sources, targets = [], []
-        for _ in range(cfg.mv_pairs_per_step):
+        for _ in range(cfg.multiview.pairs_per_step):
             b = int(torch.randint(len(self._batch_views), (1,), generator=generator))
             view = self._batch_views[b]
             pool = candidates[candidates != view]
             if pool.numel() == 0:
                 continue
-            if cfg.mv_target_mode == "nearest-k":
+            if cfg.multiview.target_mode == "nearest-k":
                 distance = (centers[pool] - centers[view]).norm(dim=-1)
-                pool = pool[torch.argsort(distance, stable=True)[: cfg.mv_nearest_k]]
+                pool = pool[torch.argsort(distance, stable=True)[: cfg.multiview.nearest_k]]
             sources.append(b)
             targets.append(int(pool[torch.randint(pool.numel(), (1,), generator=generator)]))
         if not sources:
             return {}
         tgt = torch.tensor(targets, device=self.device)
-        factor = cfg.mv_target_downscale
+        factor = cfg.multiview.target_downscale
         tgt_width, tgt_height = max(1, self.width // factor), max(1, self.height // factor)
         tgt_K = scale_intrinsics(self.Ks[tgt], tgt_width / self.width)
         geometry = scene.render_geometry(self.viewmats[tgt], tgt_K, tgt_width, tgt_height)
@@ -297,7 +296,7 @@ class Trainer:
             for p, t in enumerate(targets)
         ])
         src = torch.tensor(sources, device=self.device)
-        uv_list = [sample_foreground_pixels(self._batch_masks[b, ..., 0], cfg.mv_pixels_per_pair, generator)
+        uv_list = [sample_foreground_pixels(self._batch_masks[b, ..., 0], cfg.multiview.pixels_per_pair, generator)
                    for b in sources]
         count = max(1, max(uv.shape[0] for uv in uv_list))
         host_uv = torch.full((len(sources), count, 2), 0.5)
@@ -312,10 +311,10 @@ class Trainer:
             self.bounds.near, self.bounds.far, self.mv_cfg, src_uv_valid=valid,
         )
         out = {}
-        if cfg.lambda_sil > 0:
-            out["mv_silhouette"] = cfg.lambda_sil * terms.silhouette
-        if cfg.lambda_depth > 0:
-            out["mv_depth"] = cfg.lambda_depth * terms.depth
+        if cfg.losses.lambda_sil > 0:
+            out["mv_silhouette"] = cfg.losses.lambda_sil * terms.silhouette
+        if cfg.losses.lambda_depth > 0:
+            out["mv_depth"] = cfg.losses.lambda_depth * terms.depth
         return out
 
     def _target_silhouette(self, view: int, height: int, width: int) -> Tensor:
@@ -333,7 +332,7 @@ class Trainer:
         Nothing here reads a value back from the device: :class:`LossLog` checks the terms later.
         """
         cfg = self.cfg
-        torch.manual_seed(cfg.seed * 1_000_003 + step)
+        torch.manual_seed(cfg.schedule.seed * 1_000_003 + step)
         self.set_learning_rates(optimizers, step)
         _, target, light_pos, light_rgb = self.draw_batch(step)
         render = scene.render(target.viewmats, target.Ks, self.width, self.height, light_pos, light_rgb)
@@ -342,16 +341,16 @@ class Trainer:
             self.strategy.step_pre_backward(scene.gaussians.params, gaussian_optimizers(optimizers),
                                             strategy_state, step, info)
         terms = image_objective(render, target, cfg, self.lpips)
-        if cfg.lambda_visibility > 0 and step % cfg.raytrace_every == 0:
+        if cfg.losses.lambda_visibility > 0 and step % cfg.raytrace.every == 0:
             terms["raytrace"] = self.raytrace_term(scene, light_pos, step)
-        if cfg.lambda_sil > 0 or cfg.lambda_depth > 0:
+        if cfg.losses.lambda_sil > 0 or cfg.losses.lambda_depth > 0:
             terms.update(self.multiview_terms(scene, render, target, step))
         total = torch.stack(list(terms.values())).sum()
         total.backward()
         for optimizer in optimizers.values():
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
-        if self.strategy is not None and scene.gaussians.num_gaussians < cfg.max_gaussians:
+        if self.strategy is not None and scene.gaussians.num_gaussians < cfg.gaussians.max_count:
             self.strategy.step_post_backward(scene.gaussians.params, gaussian_optimizers(optimizers),
                                              strategy_state, step, info, packed=False)
         values = {k: v.detach() for k, v in terms.items()}
@@ -361,7 +360,7 @@ class Trainer:
     # ------------------------------------------------------------------ the loop
     def run(self, resume: bool = False, *, scene: RelightableScene | None = None,
             on_step: StepCallback | None = None) -> TrainResult:
-        """Train for ``cfg.iterations`` steps (continuing from the newest checkpoint when ``resume``).
+        """Train for ``cfg.schedule.iterations`` steps (continuing from the newest checkpoint when ``resume``).
 
         ``scene``: start from this scene instead of :meth:`build_scene` (trained in place). ``on_step`` is
         called after every step (see :data:`StepCallback`); when it returns ``True`` the run ends there.
@@ -385,7 +384,8 @@ class Trainer:
         values: dict[str, float] = {"total": float("nan")}
         done = start_step
         self.loss_log = LossLog()
-        bar = tqdm(range(start_step, cfg.iterations), initial=start_step, total=cfg.iterations,
+        iterations = cfg.schedule.iterations
+        bar = tqdm(range(start_step, iterations), initial=start_step, total=iterations,
                    disable=not self.show_progress, desc="train", dynamic_ncols=True)
         for step in bar:
             try:
@@ -395,11 +395,11 @@ class Trainer:
                 self.loss_log.flush()  # a non-finite loss before the failure is the better diagnosis
                 raise
             done = step + 1
-            last = (on_step is not None and bool(on_step(done, scene, terms))) or done == cfg.iterations
-            checkpoint_due = (self.run_dir is not None and done % cfg.checkpoint_every == 0 and not last)
-            if done % cfg.log_every == 0 or last or checkpoint_due:
+            last = (on_step is not None and bool(on_step(done, scene, terms))) or done == iterations
+            checkpoint_due = (self.run_dir is not None and done % cfg.runtime.checkpoint_every == 0 and not last)
+            if done % cfg.runtime.log_every == 0 or last or checkpoint_due:
                 values = self.loss_log.flush()
-            if done % cfg.log_every == 0 or last:
+            if done % cfg.runtime.log_every == 0 or last:
                 record = {"step": done, "gaussians": scene.gaussians.num_gaussians,
                           "light_scale": float(scene.light_scale.detach()), **values}
                 history.append(record)
@@ -408,7 +408,7 @@ class Trainer:
                     for key, value in record.items():
                         if key != "step":
                             writer.add_scalar(f"train/{key}", value, done)
-            if writer is not None and (done % cfg.image_log_every == 0 or last):
+            if writer is not None and (done % cfg.runtime.image_log_every == 0 or last):
                 self._log_images(writer, scene, done)
             if checkpoint_due:
                 save_checkpoint(self.run_dir, done, scene_tensors(scene), optimizers, strategy_state,
@@ -442,7 +442,7 @@ class Trainer:
                 self.init_source = "given"
             return scene, self.build_optimizers(scene), self._initial_strategy_state(), 0, [], 0.0
         checkpoint, loaded = found
-        scene = scene_from_tensors(loaded.scene, self.cfg).to(self.device)
+        scene = scene_from_tensors(loaded.scene, self.cfg.shading).to(self.device)
         optimizers = self.build_optimizers(scene)
         for name, optimizer in optimizers.items():
             optimizer.load_state_dict(loaded.optimizers[name])

@@ -22,7 +22,8 @@ from typing import Any
 import optuna
 
 from diamond_sss.scene.model import RelightableScene
-from diamond_sss.training.config import TrainConfig, make_config, scale_schedule
+from diamond_sss.training.config import TrainConfig, canonical_key, scale_schedule
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.tuning.space import (
     SEARCH_SPACE,
@@ -47,7 +48,7 @@ class ObjectiveSettings:
         overrides: fixed TrainConfig values of every trial (e.g. ``num_gaussians``, ``device``).
         iterations: training steps of a trial.
         report_every: steps between validation PSNR reports (plus one at the end).
-        schedule_scale: factor on iteration-valued keys; ``None``: ``iterations / TrainConfig.iterations``.
+        schedule_scale: factor on iteration-valued keys; ``None``: ``iterations / schedule.iterations`` (10000).
     """
 
     preset: str = "diamond"
@@ -61,7 +62,7 @@ class ObjectiveSettings:
             raise ValueError(f"iterations must be positive, got {self.iterations}")
         if self.report_every <= 0:
             raise ValueError(f"report_every must be positive, got {self.report_every}")
-        if "iterations" in self.overrides:
+        if any(canonical_key(key) == "schedule.iterations" for key in self.overrides):
             raise ValueError("set the trial length with 'iterations', not in the overrides")
 
     @property
@@ -73,7 +74,7 @@ class ObjectiveSettings:
         record = {
             "preset": self.preset, "iterations": self.iterations, "report_every": self.report_every,
             "schedule_scale": self.scale,
-            "overrides": {k: v for k, v in self.overrides.items() if k != "device"},
+            "overrides": {k: v for k, v in self.overrides.items() if canonical_key(k) != "runtime.device"},
             "data": data.describe(), "space": {k: [r.low, r.high, r.log, r.step] for k, r in space.items()},
         }
         return json.loads(json.dumps(record))
@@ -116,8 +117,8 @@ class Objective:
     def initial_scene(self, trainer: Trainer) -> RelightableScene:
         """A copy of the trainer's initial scene, built once per worker (no searched key changes it)."""
         cfg = trainer.cfg
-        key = (cfg.seed, cfg.init, cfg.num_gaussians, cfg.sss_width, cfg.light_init, cfg.mixed_precision,
-               str(trainer.device))
+        key = (cfg.schedule.seed, cfg.gaussians.init, cfg.gaussians.count, cfg.shading.sss_width,
+               cfg.shading.light_init, cfg.shading.mixed_precision, str(trainer.device))
         if key not in self._initial_scenes:
             self._initial_scenes[key] = trainer.build_scene()
         return copy.deepcopy(self._initial_scenes[key])
@@ -128,7 +129,7 @@ class Objective:
         reported = {"value": math.nan}
 
         def report(done: int, scene: RelightableScene, terms: dict) -> bool:
-            if done % self.settings.report_every and done != cfg.iterations:
+            if done % self.settings.report_every and done != cfg.schedule.iterations:
                 return False
             value = validation_psnr(scene, self.data.validation)
             if not math.isfinite(value):

@@ -1,10 +1,15 @@
-"""The noise schedulers of both diffusion models (diffusers' DDPM for training, DDIM for sampling)."""
+"""The noise schedulers of both diffusion models (diffusers' DDPM for training, DDIM for sampling).
+
+diffusers is imported when a scheduler is made, so that the model configs holding a :class:`SchedulerConfig`
+import without torch (the command line derives its options from them)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from diffusers import DDIMScheduler, DDPMScheduler
+if TYPE_CHECKING:
+    from diffusers import DDIMScheduler, DDPMScheduler
 
 
 @dataclass(frozen=True)
@@ -31,6 +36,8 @@ class SchedulerConfig:
 
 def make_ddpm_scheduler(config: SchedulerConfig) -> DDPMScheduler:
     """Training scheduler (``add_noise`` and ``alphas_cumprod``)."""
+    from diffusers import DDPMScheduler
+
     return DDPMScheduler(**config.kwargs(), clip_sample=False)
 
 
@@ -41,6 +48,8 @@ def make_ddim_scheduler(config: SchedulerConfig, clip_range: float | None = None
     and a last step that lands on the clean prediction. With ``clip_range`` the clean estimate is clipped to
     ``[-clip_range, clip_range]`` at every step.
     """
+    from diffusers import DDIMScheduler
+
     return DDIMScheduler(
         **config.kwargs(),
         clip_sample=clip_range is not None,

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -18,8 +18,9 @@ from diffusers.optimization import get_constant_schedule_with_warmup
 from diamond_sss.diffusion.common.ema import EMA
 from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
 from diamond_sss.diffusion.common.schedulers import make_ddpm_scheduler
+from diamond_sss.diffusion.nvs.config import FinetuneConfig
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch
-from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
+from diamond_sss.diffusion.nvs.model import NVSModel
 from diamond_sss.training.checkpoint import (
     latest_accelerate_checkpoint,
     load_accelerate_checkpoint,
@@ -28,25 +29,6 @@ from diamond_sss.training.checkpoint import (
 from diamond_sss.utils.io import atomic_write_json
 
 CHECKPOINTS = "checkpoints"
-
-
-@dataclass
-class FinetuneConfig:
-    """Fine-tuning hyper-parameters."""
-
-    steps: int = 1000
-    objects_per_batch: int = 4
-    views_per_object: int = 4
-    learning_rate: float = 1e-4
-    warmup_steps: int = 100
-    weight_decay: float = 0.0
-    ema_decay: float = 0.999
-    gradient_checkpointing: bool = True
-    seed: int = 0
-    checkpoint_every: int = 200
-    keep_checkpoints: int = 2
-    log_every: int = 25
-    model: NVSConfig = field(default_factory=NVSConfig)
 
 
 @deterministic_kernels
