@@ -16,7 +16,7 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.errors import DamagedFileError, DataError
 from diamond_sss.training.checkpoint import checkpoint_folders, load_checkpoint, resume_checkpoint
-from diamond_sss.training.overrides import make_config
+from diamond_sss.training.overrides import load_run_config, make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.utils import io as io_module
 from diamond_sss.utils.io import atomic_save_safetensors, load_safetensors, read_json
@@ -120,7 +120,7 @@ def test_resume_falls_back_to_the_newest_intact_checkpoint(trained, capture, tmp
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert f"step_00000004 is damaged: {folders[0] / damaged_file}" in warnings[0]
     assert warnings[1] == f"resuming from {folders[1]}, the newest intact checkpoint"
-    cfg = make_config("diamond", overrides={**TINY, "iterations": 6, "checkpoint_every": 2})
+    cfg = make_config("diamond", overrides={**load_run_config(run).flat(), "iterations": 6})  # the run's settings
     with caplog.at_level(logging.INFO, logger="diamond_sss.training.trainer"):
         result = Trainer(cfg, [ImageSource(OLATDataset(capture))], run, show_progress=False).run(resume=True)
     assert f"resuming from step 2 ({folders[1]})" in caplog.text

@@ -173,7 +173,7 @@ def test_epoch_order_is_a_permutation_drawn_once_per_epoch():
 def test_resume_with_other_settings_is_refused_naming_them(tmp_path):
     from diamond_sss.data.analytic import make_capture
     from diamond_sss.data.dataset import OLATDataset
-    from diamond_sss.training.config import make_config
+    from diamond_sss.training.overrides import make_config
     from diamond_sss.training.run_folder import changed_settings
     from diamond_sss.training.trainer import ImageSource, Trainer
 
