@@ -15,7 +15,7 @@ import shutil
 from pathlib import Path
 
 from diamond_sss.data.embedded import embedded_dataset
-from diamond_sss.evaluation.ablation import REGIMES, VARIANTS, ablation_table, run_ablation
+from diamond_sss.experiments.ablation import REGIMES, VARIANTS, ablation_table, run_ablation
 from diamond_sss.training.config import short_schedule
 
 RESULTS = Path(__file__).resolve().parent / "results" / "ablation"

@@ -10,7 +10,7 @@ warp-hint model sees it, upsampled to the image size). The model and the hint ta
 depth from ``--geometry`` (default: the depth maps stored with the data, so render them).
 Writes benchmarks/results/nvs_quality/{nvs_quality.json, nvs_quality.md}.
 
-    python -m diamond_sss.synth.cli --shape torus --material marble --seed 21 --out /tmp/nvs/torus \\
+    python -m diamond_sss.cli.main synth --shape torus --material marble --seed 21 --out /tmp/nvs/torus \\
         --views 12 --lights 1 --size 64 --spp 32 --test-views 0 --test-lights 0
     python benchmarks/nvs_quality.py --data /tmp/nvs/torus /tmp/nvs/bunny --baseline-iterations 150
 """
@@ -26,19 +26,20 @@ import torch
 
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.images import load_rgba
+from diamond_sss.diffusion.common.manifest import read_image_manifest
 from diamond_sss.diffusion.geometry import GeometrySource, geometry_source
-from diamond_sss.diffusion.nvs.model import CONFIG_NAME, NVSConfig
+from diamond_sss.diffusion.nvs.model import NVSModel
 from diamond_sss.diffusion.nvs.pipeline import (
+    TargetCameras,
     default_model_dir,
     generate_novel_views,
-    parse_targets,
     warp_reference_views,
 )
 from diamond_sss.diffusion.nvs.rays import view_angle_degrees
 from diamond_sss.evaluation.metrics import image_metrics
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.run import train_run
-from diamond_sss.training.trainer import load_scene
+from diamond_sss.training.run_folder import load_scene
 
 RESULTS = Path(__file__).resolve().parent / "results" / "nvs_quality"
 ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 181))
@@ -104,18 +105,18 @@ def evaluate_object(
             folder,
             view,
             light,
-            ",".join(map(str, targets)),
+            targets,
             model_dir=model,
             steps=count,
             guidance_scale=guidance,
             cache_dir=out / "cache",
             geometry=geometry,
         )
-        images = [load_rgba(folder / entry["image"]) for entry in json.loads(manifest.read_text())]
+        images = [load_rgba(item.image) for item in read_image_manifest(manifest)]
         predictions[f"nvs-{count}-steps"] = images
         print(f"{data.name}: nvs ({count} steps) {time.perf_counter() - started:.1f} s")
-    config = NVSConfig.from_dict(json.loads((model / CONFIG_NAME).read_text()))
-    cameras = parse_targets(",".join(map(str, targets)), dataset)
+    config = NVSModel.read_config(model)
+    cameras = TargetCameras.from_views(dataset, targets)
     warped = warp_reference_views(dataset, view, light, cameras, geometry, config).clamp(0, 1)
     predictions["warp-hint"] = [(w[:3].permute(1, 2, 0), w[3:].permute(1, 2, 0)) for w in warped]
     reference = dataset.load(dataset.observation_index(view, light))

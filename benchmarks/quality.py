@@ -1,53 +1,127 @@
-"""Reconstruction quality on the embedded demo object per capture regime and preset (issue 3).
+"""Reconstruction quality and where its error is, beside the data's noise ceiling (issue 17).
 
-Trains with the short CPU schedule and reports PSNR / SSIM / mask IoU on the test split (novel views under
-novel lights). Runs go to outputs/benchmarks/quality (resumable); tables to benchmarks/results/quality.
+Each variant is a preset plus config overrides, trained on one capture regime with the same schedule
+(``short_schedule(--iterations)``), then scored on the test split (novel views under novel lights) and on
+training images (can it fit at all?), with the test error split by region (``evaluation/regions.py``:
+silhouette, back-lit, cast shadow, highlight, lit). The noise ceiling comes from a second render of the test
+split with independent Monte Carlo noise (``evaluation/noise.py``), rendered once from the capture's
+``meta.json`` with ``--render-noise-reference`` (Mitsuba) or given with ``--noise-reference``.
 
-    python benchmarks/quality.py --iterations 400 --presets diamond sss3dgs --regimes all "views=5%,lights=5%"
+    python benchmarks/quality.py --iterations 1000 --render-noise-reference \\
+        --variants base "srgb:photometric_space=srgb" "mlp64:sss_width=64,sss_lr=0.005"
+
+Runs go to outputs/benchmarks/quality/<regime>/<variant>-<hash of its settings> (resumable); the table,
+JSON and region figures to benchmarks/results/quality/.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import math
 import time
 from pathlib import Path
 
+import torch
+
+from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.embedded import embedded_dataset
-from diamond_sss.evaluation.ablation import regime_slug
+from diamond_sss.evaluation.noise import noise_ceiling
+from diamond_sss.evaluation.regions import region_errors, save_region_figure
+from diamond_sss.evaluation.run import evaluate_run
+from diamond_sss.experiments.ablation import regime_slug
 from diamond_sss.training.config import short_schedule
-from diamond_sss.training.run import evaluate_run, train_run
+from diamond_sss.training.overrides import parse_sets
+from diamond_sss.training.run import train_run
+from diamond_sss.training.run_folder import load_scene
 
 RESULTS = Path(__file__).resolve().parent / "results" / "quality"
 RUNS = Path("outputs") / "benchmarks" / "quality"
+REGION_COLUMNS = ("silhouette", "back_lit", "shadow", "lit")
+TRAIN_IMAGES = 96
+
+
+def parse_variant(text: str) -> tuple[str, dict]:
+    """``"name:key=value,key=value"`` (or just ``"name"``) -> ``(name, typed overrides)``."""
+    name, _, body = text.partition(":")
+    try:
+        return name, parse_sets([item for item in body.split(",") if item])
+    except ValueError as exc:
+        raise SystemExit(f"--variants {text!r}: {exc}") from exc
+
+
+def settings_hash(preset: str, overrides: dict) -> str:
+    return hashlib.sha256(json.dumps([preset, overrides], sort_keys=True).encode()).hexdigest()[:8]
+
+
+def measured_ceiling(data: Path, reference: Path | None, render: bool, runs: Path) -> dict | None:
+    """The noise ceiling of ``data``'s test split, rendering the second copy first when asked."""
+    if reference is None and render:
+        from diamond_sss.synth.render import noise_reference_config, synthesize
+
+        reference = runs / "noise_reference" / data.name
+        if not (reference / "transforms_test.json").is_file():
+            synthesize(noise_reference_config(data, reference))
+    if reference is None:
+        return None
+    return noise_ceiling(OLATDataset(data, "test"), OLATDataset(reference, "test"))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=None, help="data folder (default: the embedded demo)")
-    parser.add_argument("--iterations", type=int, default=400)
-    parser.add_argument("--presets", nargs="+", default=["diamond", "sss3dgs"])
-    parser.add_argument("--regimes", nargs="+", default=["all", "views=5%,lights=5%"])
+    parser.add_argument("--iterations", type=int, default=1000)
+    parser.add_argument("--preset", default="diamond")
+    parser.add_argument("--regime", default="all")
+    parser.add_argument("--variants", nargs="+", default=["base"], help='"name:key=value,..." (base: no change)')
+    parser.add_argument("--noise-reference", type=Path, default=None,
+                        help="the test split rendered again with independent noise")
+    parser.add_argument("--render-noise-reference", action="store_true",
+                        help="render that second test split from the capture's meta.json (Mitsuba)")
     parser.add_argument("--out", type=Path, default=RUNS, help="run folders (resumable)")
-    parser.add_argument("--results", type=Path, default=RESULTS, help="where the tables and figures are copied")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="where the tables and figures are written")
+    parser.add_argument("--tag", default="quality", help="file name of the table (<tag>.md / <tag>.json)")
     args = parser.parse_args()
     data = args.data or embedded_dataset()
-    rows = []
-    for regime in args.regimes:
-        for preset in args.presets:
-            run = args.out / regime_slug(regime) / preset
-            started = time.perf_counter()
-            train_run(data, run, regime=regime, preset=preset, overrides=short_schedule(args.iterations),
-                      resume=True)
-            metrics = evaluate_run(run, data, split="test", figures=4)
-            rows.append({"regime": regime, "preset": preset, "iterations": args.iterations,
-                         "minutes": (time.perf_counter() - started) / 60, **metrics})
-    lines = ["| regime | preset | steps | PSNR | SSIM | mask IoU | minutes |", "|---|---|---|---|---|---|---|"]
-    lines += [f"| `{r['regime']}` | {r['preset']} | {r['iterations']} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
-              f"{r['mask_iou']:.3f} | {r['minutes']:.1f} |" for r in rows]
+    ceiling = measured_ceiling(data, args.noise_reference, args.render_noise_reference, args.out)
+    ceiling_db = ceiling["ceiling_psnr"] if ceiling else math.nan
+    test = OLATDataset(data, "test")
     args.results.mkdir(parents=True, exist_ok=True)
-    (args.results / "quality.json").write_text(json.dumps(rows, indent=2) + "\n")
-    (args.results / "quality.md").write_text("\n".join(lines) + "\n")
+    rows = []
+    for name, overrides in map(parse_variant, args.variants):
+        settings = {**short_schedule(args.iterations), **overrides}
+        run = args.out / regime_slug(args.regime) / f"{name}-{settings_hash(args.preset, settings)}"
+        started = time.perf_counter()
+        result = train_run(data, run, regime=args.regime, preset=args.preset, overrides=settings, resume=True,
+                           show_progress=False)
+        minutes = (time.perf_counter() - started) / 60
+        scores = evaluate_run(run, data, split="test", figures=0, show_progress=False)
+        fit = evaluate_run(run, data, split="train", figures=0, max_images=TRAIN_IMAGES, show_progress=False)
+        scene, _ = load_scene(run, torch.device("cpu"))
+        regions = region_errors(scene, test).summary()
+        save_region_figure(args.results / f"regions_{name}.png", scene, test, [0, len(test) // 3, 2 * len(test) // 3],
+                           title=f"{name}: {args.iterations} steps, test PSNR {scores['psnr']:.2f} dB")
+        rows.append({"variant": name, "overrides": overrides, "preset": args.preset, "regime": args.regime,
+                     "iterations": args.iterations, "gaussians": result.num_gaussians, "minutes": minutes,
+                     "train_psnr": fit["psnr"], **{k: scores[k] for k in ("psnr", "ssim", "masked_psnr", "mask_iou")},
+                     "regions": regions, "ceiling_psnr": ceiling_db})
+        print(f"{name}: test {scores['psnr']:.2f} dB, train {fit['psnr']:.2f} dB, {minutes:.1f} min", flush=True)
+    header = ("| variant | overrides | Gaussians | train PSNR | test PSNR | SSIM | masked PSNR | IoU | "
+              + " | ".join(f"{r} PSNR (err %)" for r in REGION_COLUMNS) + " | ceiling | gap | min |")
+    lines = [f"`{args.preset}`, regime `{args.regime}`, {args.iterations} steps (`short_schedule`), "
+             f"{data.name}; ceiling: " + (f"{ceiling_db:.2f} dB (two renders differ by {ceiling['render_psnr']:.2f} "
+                                          f"dB + 3.01)" if ceiling else "not measured"), "",
+             header, "|" + "---|" * (header.count("|") - 1)]
+    for r in rows:
+        region_cells = " | ".join(f"{r['regions'][k]['psnr']:.1f} ({100 * r['regions'][k]['error_share']:.0f})"
+                                  for k in REGION_COLUMNS)
+        settings = ", ".join(f"{k}={v}" for k, v in r["overrides"].items()) or "-"
+        lines.append(f"| {r['variant']} | {settings} | {r['gaussians']} | {r['train_psnr']:.2f} | {r['psnr']:.2f} | "
+                     f"{r['ssim']:.4f} | {r['masked_psnr']:.2f} | {r['mask_iou']:.3f} | {region_cells} | "
+                     f"{ceiling_db:.2f} | {ceiling_db - r['psnr']:.2f} | {r['minutes']:.1f} |")
+    (args.results / f"{args.tag}.json").write_text(json.dumps({"ceiling": ceiling, "rows": rows}, indent=2) + "\n")
+    (args.results / f"{args.tag}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

@@ -26,15 +26,16 @@ import json
 import time
 from pathlib import Path
 
+from diamond_sss.cli.synth_commands import synth
 from diamond_sss.data.dataset import OLATDataset
-from diamond_sss.evaluation.ablation import regime_slug
 from diamond_sss.evaluation.evaluate import render_observation
 from diamond_sss.evaluation.figures import save_image_grid, to_display
+from diamond_sss.evaluation.run import evaluate_run
+from diamond_sss.experiments.ablation import regime_slug
 from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
-from diamond_sss.synth.cli import synth
 from diamond_sss.training.config import short_schedule
-from diamond_sss.training.run import evaluate_run, train_run
-from diamond_sss.training.trainer import load_scene
+from diamond_sss.training.run import train_run
+from diamond_sss.training.run_folder import load_scene
 
 RESULTS = Path(__file__).resolve().parent / "results" / "regimes"
 RUNS = Path("outputs") / "benchmarks" / "regimes_counts"

@@ -30,7 +30,7 @@ import torch
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.gaussians.model import nearest_neighbor_scales
-from diamond_sss.training.config import make_config
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -74,7 +74,7 @@ def time_case(root: Path, count: int, resolution: int, device: str, repeats: int
             if k > 0:
                 forward.append(1e3 * (middle - start))
                 backward.append(1e3 * (end - middle))
-        warmup = max(2, cfg.raytrace_every)
+        warmup = max(2, cfg.raytrace.every)
         for step in range(warmup):
             trainer.training_step(scene, optimizers, state, step)
         _sync(dev)

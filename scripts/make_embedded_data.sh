@@ -13,13 +13,13 @@ DATA=src/diamond_sss/assets/data
 SPP=128
 
 rm -rf "$DATA/demo" "$DATA/finetune"
-"$PYTHON" -m diamond_sss.synth.cli --shape bunny --material wax --out "$DATA/demo" \
+"$PYTHON" -m diamond_sss.cli.main synth --shape bunny --material wax --out "$DATA/demo" \
     --views 40 --lights 24 --test-views 8 --test-lights 6 --size 64 --spp "$SPP" --seed 0
 
 SUBSET="relight:3x10,novelview:10x3"
 for spec in torus:jade:1 bust:marble:2 blob:soap:3 sphere:skin:4; do
     IFS=: read -r shape material seed <<< "$spec"
-    "$PYTHON" -m diamond_sss.synth.cli --shape "$shape" --material "$material" \
+    "$PYTHON" -m diamond_sss.cli.main synth --shape "$shape" --material "$material" \
         --out "$DATA/finetune/${shape}_${material}" --views 40 --lights 24 --test-views 0 --test-lights 0 \
         --size 64 --spp "$SPP" --seed "$seed" --subset "$SUBSET"
 done

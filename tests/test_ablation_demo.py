@@ -8,7 +8,7 @@ import pytest
 
 from diamond_sss.cli.main import main
 from diamond_sss.data.analytic import make_capture
-from diamond_sss.evaluation.ablation import regime_slug, run_ablation
+from diamond_sss.experiments.ablation import regime_slug, run_ablation
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,7 @@ def test_ablation_writes_table_json_and_grid(capture, tmp_path):
     saved = json.loads((tmp_path / "ablation.json").read_text())
     assert len(saved) == 2 and all("psnr" in row and "mask_iou" in row for row in saved)
     config = json.loads((tmp_path / "views50p_lightsall" / "diamond-no-mv" / "config.json").read_text())
-    assert config["lambda_sil"] == 0.0 and config["lambda_depth"] == 0.0
+    assert config["losses"]["lambda_sil"] == 0.0 and config["losses"]["lambda_depth"] == 0.0
     assert (tmp_path / "ablation_grid.png").is_file()
     assert "| `views=50%,lights=all` | +both |" in (tmp_path / "ablation.md").read_text()
     with pytest.raises(ValueError, match="unknown ablation variants"):

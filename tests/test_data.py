@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import warnings
 
 import numpy as np
 import pytest
@@ -24,6 +23,18 @@ from diamond_sss.data.conventions import (
     unproject_pixels,
 )
 from diamond_sss.data.images import write_png
+from diamond_sss.utils.logs import reset_warnings
+
+
+def test_intrinsics_from_either_field_of_view():
+    square = torch.tensor([[50.0, 0, 50.0], [0, 50.0, 40.0], [0, 0, 1]])
+    assert torch.allclose(intrinsics_from_fov(math.radians(90.0), 100, 80), square, atol=1e-4)
+    vertical = torch.tensor([[40.0, 0, 50.0], [0, 40.0, 40.0], [0, 0, 1]])
+    assert torch.allclose(intrinsics_from_fov(None, 100, 80, math.radians(90.0)), vertical, atol=1e-4)
+    both = intrinsics_from_fov(math.radians(90.0), 100, 80, math.radians(90.0))
+    assert torch.allclose(both.diagonal(), torch.tensor([50.0, 40.0, 1.0]), atol=1e-4)
+    with pytest.raises(ValueError, match="fov_x or fov_y"):
+        intrinsics_from_fov(None, 100, 80)
 
 
 def test_known_point_projects_to_known_pixel():
@@ -216,16 +227,17 @@ def test_rgb_without_alpha_needs_a_mask_file(tmp_path):
     assert float(sample.rgb[0, 0].abs().sum()) == 0.0  # straight RGB is premultiplied by the mask
 
 
-def test_empty_mask_is_a_warning(tmp_path):
-    make_capture(tmp_path, views=2, lights=1, size=8)
+def test_empty_masks_give_one_warning_line_per_process(tmp_path, caplog):
+    make_capture(tmp_path, views=3, lights=1, size=8)
     write_png(tmp_path / "train/v001_l000.png", np.zeros((8, 8, 4), np.uint8))
-    ds = OLATDataset(tmp_path)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        ds.load(ds.observation_index(1, 0))
-        ds.load(ds.observation_index(1, 0))
-    messages = [str(w.message) for w in caught]
-    assert len(messages) == 1 and "v001_l000.png: the mask is empty" in messages[0]
+    write_png(tmp_path / "train/v002_l000.png", np.zeros((8, 8, 4), np.uint8))
+    reset_warnings()
+    for _ in range(2):
+        ds = OLATDataset(tmp_path)
+        for view in (0, 1, 2):
+            ds.load(ds.observation_index(view, 0))
+    messages = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(messages) == 1 and "v001_l000.png: the mask is empty (frame 1 of" in messages[0]
 
 
 def test_declared_lattice_keeps_cameras_and_lights_without_images(tmp_path):

@@ -13,9 +13,9 @@ import torch
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.gaussians.model import nearest_neighbor_scales
-from diamond_sss.training.checkpoint import latest_checkpoint
-from diamond_sss.training.config import make_config
+from diamond_sss.training.checkpoint import checkpoint_folders
 from diamond_sss.training.loss_log import LossLog
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.utils import rng
 
@@ -110,7 +110,7 @@ def test_training_stops_at_a_non_finite_loss_and_keeps_the_last_good_checkpoint(
     trainer = _NaNTrainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False)
     with pytest.raises(FloatingPointError, match=r"step 3: mask"):
         trainer.run()
-    assert latest_checkpoint(tmp_path / "run").name.endswith("2")
+    assert checkpoint_folders(tmp_path / "run")[0].name.endswith("2")
     assert not (tmp_path / "run" / "model.safetensors").exists()
 
 
@@ -118,6 +118,9 @@ def test_resume_without_a_checkpoint_says_so(capture, tmp_path, caplog):
     cfg = make_config("diamond", overrides={**TINY, "iterations": 1, "log_every": 1})
     trainer = Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False)
     with caplog.at_level(logging.WARNING, logger="diamond_sss.training.trainer"):
+        trainer.run(resume=True)  # a new folder: nothing to say
+        assert "no checkpoint" not in caplog.text
+        (tmp_path / "run" / "model.safetensors").unlink()  # an earlier run that left no checkpoint
         trainer.run(resume=True)
     assert "no checkpoint" in caplog.text and "step 0" in caplog.text
 
@@ -149,3 +152,39 @@ def test_the_default_preset_trains_on_cuda(capture, tmp_path):
     result = Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False).run()
     assert math.isfinite(result.final_loss)
     assert {"raytrace", "mv_silhouette", "mv_depth"} <= result.history[-1].keys()
+
+
+@pytest.mark.parametrize("value", [-0.5, float("nan")])
+def test_synthetic_weight_is_checked_in_the_config_not_in_the_step(value):
+    from diamond_sss.training.overrides import make_config
+
+    with pytest.raises(ValueError, match="synthetic_weight"):
+        make_config("diamond", overrides={"synthetic_weight": value})
+
+
+def test_epoch_order_is_a_permutation_drawn_once_per_epoch():
+    from diamond_sss.data.dataset import seeded_epoch_indices
+
+    order = [seeded_epoch_indices(step, 1, 7, seed=3)[0] for step in range(14)]
+    assert sorted(order[:7]) == sorted(order[7:]) == list(range(7)) and order[:7] != order[7:]
+    assert seeded_epoch_indices(2, 3, 7, seed=3) == order[6:9]
+
+
+def test_resume_with_other_settings_is_refused_naming_them(tmp_path):
+    from diamond_sss.data.analytic import make_capture
+    from diamond_sss.data.dataset import OLATDataset
+    from diamond_sss.training.overrides import make_config
+    from diamond_sss.training.run_folder import changed_settings
+    from diamond_sss.training.trainer import ImageSource, Trainer
+
+    make_capture(tmp_path / "data", views=4, lights=2, size=16)
+    sources = [ImageSource(OLATDataset(tmp_path / "data", "train"))]
+    base = {"iterations": 2, "num_gaussians": 50, "batch_size": 1, "checkpoint_every": 1, "lambda_lpips": 0.0,
+            "densify": False}
+    Trainer(make_config("diamond", overrides=base), sources, tmp_path / "run", show_progress=False).run()
+    longer = make_config("diamond", overrides={**base, "iterations": 3})
+    assert changed_settings(tmp_path / "run", longer) == {}  # a longer run may resume
+    Trainer(longer, sources, tmp_path / "run", show_progress=False).run(resume=True)
+    wider = make_config("diamond", overrides={**base, "iterations": 3, "sss_width": 16})
+    with pytest.raises(ValueError, match=r"other settings \(sss_width: 32 -> 16\)"):
+        Trainer(wider, sources, tmp_path / "run", show_progress=False).run(resume=True)

@@ -482,3 +482,19 @@ def test_import_ply_names_the_missing_property(tmp_path):
     _write_vertex_ply(tmp_path / "plain.ply", columns)
     with pytest.raises(ValueError, match=r"plain\.ply.*'nx'"):
         import_ply(tmp_path / "plain.ply")
+
+
+def test_one_list_of_gaussian_parameters_gives_shapes_ply_fields_and_learning_rates():
+    from dataclasses import fields
+
+    from diamond_sss.gaussians.model import GAUSSIAN_PARAMS
+    from diamond_sss.training.config import LearningRates
+    from diamond_sss.training.trainer import GAUSSIAN_LR_KEYS
+
+    assert list(PARAM_SHAPES) == [param.name for param in GAUSSIAN_PARAMS]
+    names = [name for param in GAUSSIAN_PARAMS for name in param.ply]
+    assert len(names) == len(set(names)) == 3 + 3 + 4 + 1 + 3 + 3 + 1 + 1 + 1 + NUM_VISIBILITY_SH
+    for param in GAUSSIAN_PARAMS:
+        assert len(param.ply) == math.prod(param.shape), param.name
+    assert list(GAUSSIAN_LR_KEYS) == [name for name in PARAM_SHAPES if name != "means"]
+    assert set(GAUSSIAN_LR_KEYS.values()) <= {f.name for f in fields(LearningRates)}

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import warnings
 
 import pytest
 import torch
@@ -38,6 +37,7 @@ from diamond_sss.losses import (
 )
 from diamond_sss.losses import lpips as lpips_module
 from diamond_sss.losses.lpips import LIN_CHANNELS, VGG16_CONVS, expected_shapes
+from diamond_sss.utils.logs import reset_warnings
 
 
 def _images(
@@ -309,7 +309,7 @@ def _random_lpips_weights(seed: int = 0) -> dict[str, torch.Tensor]:
 
 @pytest.fixture
 def fresh_lpips_warning(monkeypatch):
-    monkeypatch.setattr(lpips_module, "_warned_unavailable", False)
+    reset_warnings()
     monkeypatch.delenv(lpips_module.WEIGHTS_ENV_VAR, raising=False)
 
 
@@ -363,14 +363,12 @@ def test_lpips_first_layer_matches_a_direct_computation(tmp_path, fresh_lpips_wa
     assert torch.allclose(model(a, b), expected, rtol=1e-4, atol=1e-6)
 
 
-def test_lpips_missing_weights_warns_once(tmp_path, fresh_lpips_warning):
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        assert load_lpips(None) is None
-        assert load_lpips(str(tmp_path / "absent.safetensors")) is None
-        assert load_lpips(None) is None
-    lpips_warnings = [w for w in caught if "LPIPS" in str(w.message)]
-    assert len(lpips_warnings) == 1
+def test_lpips_missing_weights_warns_once(tmp_path, fresh_lpips_warning, caplog):
+    assert load_lpips(None) is None
+    assert load_lpips(str(tmp_path / "absent.safetensors")) is None
+    assert load_lpips(None) is None
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warned == ["LPIPS is disabled: no weights file given and $DIAMOND_SSS_LPIPS_WEIGHTS is not set"]
 
 
 def test_lpips_wrong_keys_name_file_and_key(tmp_path, fresh_lpips_warning):

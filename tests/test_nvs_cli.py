@@ -27,8 +27,11 @@ def setup(tmp_path_factory):
     return data, model_dir, tmp_path_factory.mktemp("cache")
 
 
-def run(setup, out, targets="1,3", **kwargs):
+def run(setup, out, targets=(1, 3), **kwargs):
+    """The library with typed targets; a string goes through the command line's parser first."""
     data, model_dir, cache = setup
+    if isinstance(targets, str):
+        targets = pipeline.parse_targets(targets, pipeline.OLATDataset(data))
     return pipeline.generate_novel_views(
         data,
         out,
@@ -46,11 +49,11 @@ def test_outputs_manifest_and_cache(setup, tmp_path, monkeypatch):
     manifest_path = run(setup, tmp_path / "a")
     manifest = json.loads(manifest_path.read_text())
     assert manifest == [
-        {"view": 1, "light": 1, "image": "view_001.png", "mask": "view_001_mask.png"},
-        {"view": 3, "light": 1, "image": "view_003.png", "mask": "view_003_mask.png"},
+        {"view": 1, "light": 1, "image": "images/view_001.png", "mask": "masks/view_001.png"},
+        {"view": 3, "light": 1, "image": "images/view_003.png", "mask": "masks/view_003.png"},
     ]
-    image = iio.imread(tmp_path / "a" / "view_001.png")
-    mask = iio.imread(tmp_path / "a" / "view_001_mask.png")
+    image = iio.imread(tmp_path / "a" / "images" / "view_001.png")
+    mask = iio.imread(tmp_path / "a" / "masks" / "view_001.png")
     assert image.shape == (24, 24, 4) and mask.shape == (24, 24)
     assert (image[..., 3] == mask).all()
 
@@ -59,11 +62,12 @@ def test_outputs_manifest_and_cache(setup, tmp_path, monkeypatch):
 
     monkeypatch.setattr(pipeline.NVSModel, "load", no_model)
     run(setup, tmp_path / "b")
-    assert (tmp_path / "a" / "view_003.png").read_bytes() == (tmp_path / "b" / "view_003.png").read_bytes()
+    image = ("images", "view_003.png")
+    assert (tmp_path.joinpath("a", *image)).read_bytes() == (tmp_path.joinpath("b", *image)).read_bytes()
     monkeypatch.undo()
     # another seed is another cache entry and other images
     run(setup, tmp_path / "c", seed=1)
-    assert (tmp_path / "a" / "view_003.png").read_bytes() != (tmp_path / "c" / "view_003.png").read_bytes()
+    assert (tmp_path.joinpath("a", *image)).read_bytes() != (tmp_path.joinpath("c", *image)).read_bytes()
 
 
 def test_json_poses_through_the_command(setup, tmp_path):
@@ -75,7 +79,7 @@ def test_json_poses_through_the_command(setup, tmp_path):
         data, view=0, light=0, targets=str(poses), out=tmp_path / "out", model=model_dir, steps=1, cache=cache
     )
     manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
-    assert [m["image"] for m in manifest] == ["pose_000.png", "pose_001.png"]
+    assert [m["image"] for m in manifest] == ["images/pose_000.png", "images/pose_001.png"]
     assert all((tmp_path / "out" / m["mask"]).is_file() for m in manifest)
     # the same cameras given as lattice indices give the same targets
     same = pipeline.parse_targets("2,4", pipeline.OLATDataset(data))
@@ -109,3 +113,14 @@ def test_bad_reference_and_pose_file_give_clear_errors(setup, tmp_path):
         run(setup, tmp_path, targets=str(bad))
     with pytest.raises(ValueError, match="not found"):
         run(setup, tmp_path, targets=str(tmp_path / "missing.json"))
+
+
+def test_the_library_takes_typed_targets_not_command_line_text(setup, tmp_path):
+    data, _, _ = setup
+    cameras = pipeline.TargetCameras.from_views(pipeline.OLATDataset(data), [3, 1])
+    assert cameras.views == [3, 1] and cameras.names == ["view_003", "view_001"] and cameras.size == 24
+    assert json.loads(run(setup, tmp_path / "a", targets=cameras).read_text())[0]["view"] == 3
+    with pytest.raises(TypeError, match="parse_targets"):
+        pipeline.generate_novel_views(data, tmp_path / "b", 0, 1, "1,3", model_dir=setup[1], cache_dir=setup[2])
+    with pytest.raises(ValueError, match=r"unknown view index \[True\]"):
+        run(setup, tmp_path / "c", targets=[True])

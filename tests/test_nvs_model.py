@@ -15,7 +15,9 @@ from diamond_sss.data.conventions import (
     pixel_grid,
     unproject_pixels,
 )
+from diamond_sss.diffusion.common.schedulers import make_ddim_scheduler, make_ddpm_scheduler
 from diamond_sss.diffusion.nvs.model import NVSBatch, NVSConfig, NVSModel, shared_noise
+from diamond_sss.diffusion.nvs.pipeline import NovelViewPipeline
 from diamond_sss.diffusion.nvs.rays import (
     harmonic_embedding,
     plucker_rays,
@@ -191,11 +193,13 @@ def test_sampling_is_deterministic_and_shared_noise_gives_identical_views_for_id
     _set_random(model.unet, ("conv2.weight", "proj_out.weight", "conv_out.weight"), seed=1)
     batch = tiny_batch(objects=1, views=2)
     batch.target_w2c[0, 1] = batch.target_w2c[0, 0]
-    a = model.sample(batch, num_steps=2, generator=torch.Generator().manual_seed(5))
-    b = model.sample(batch, num_steps=2, generator=torch.Generator().manual_seed(5))
-    assert a.shape == (1, 2, 4, 16, 16)
-    assert torch.equal(a, b)
-    torch.testing.assert_close(a[0, 0], a[0, 1], atol=1e-5, rtol=0)
+    a = NovelViewPipeline(model)(batch, num_steps=2, generator=torch.Generator().manual_seed(5))
+    b = NovelViewPipeline(model)(batch, num_steps=2, generator=torch.Generator().manual_seed(5))
+    assert a.rgb.shape == (2, 16, 16, 3) and a.alpha.shape == (2, 16, 16, 1)
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.alpha, b.alpha)
+    torch.testing.assert_close(a.rgb[0], a.rgb[1], atol=1e-5, rtol=0)
+    resized = NovelViewPipeline(model)(batch, num_steps=2, generator=torch.Generator().manual_seed(5), size=24)
+    assert resized.rgb.shape == (2, 24, 24, 3) and resized.alpha.shape == (2, 24, 24, 1)
 
 
 def test_latent_space_round_trip_uses_the_vae_scale():
@@ -213,9 +217,7 @@ def test_latent_space_round_trip_uses_the_vae_scale():
 
 
 def test_noise_schedule_is_the_ldm_linear_schedule():
-    from diamond_sss.diffusion.nvs.model import make_train_scheduler
-
-    betas = make_train_scheduler(NVSConfig()).betas
+    betas = make_ddpm_scheduler(NVSConfig().scheduler).betas
     expected = torch.linspace(0.00085**0.5, 0.012**0.5, 1000, dtype=torch.float64) ** 2
     torch.testing.assert_close(betas.double(), expected, atol=1e-7, rtol=0)
 
@@ -252,18 +254,17 @@ def test_bad_inputs_give_clear_errors(tmp_path):
 
 
 def test_ddim_sampling_with_an_oracle_denoiser_recovers_the_clean_views():
-    from diamond_sss.diffusion.nvs.model import make_sample_scheduler
-
     torch.manual_seed(0)
     model = NVSModel(NVSConfig(**TINY)).eval()
     batch = tiny_batch(objects=1, views=2)
     clean = torch.rand(2, 4, 16, 16) * 2 - 1
-    alphas = make_sample_scheduler(model.config).alphas_cumprod
+    alphas = make_ddim_scheduler(model.config.scheduler, model.config.sample_clip_range).alphas_cumprod
 
     def oracle(noisy, timesteps, reference, context, rays, num_views, hint=None):
         a = alphas[timesteps].reshape(-1, 1, 1, 1)
         return (noisy - a.sqrt() * clean.repeat(noisy.shape[0] // 2, 1, 1, 1)) / (1 - a).sqrt()
 
     model.denoise = oracle
-    out = model.sample(batch, num_steps=10, guidance_scale=2.0, generator=torch.Generator().manual_seed(0))
-    torch.testing.assert_close(out[0], (clean + 1) / 2, atol=1e-4, rtol=0)
+    out = NovelViewPipeline(model)(batch, num_steps=10, guidance_scale=2.0, generator=torch.Generator().manual_seed(0))
+    rgba = torch.cat([out.rgb, out.alpha], dim=-1).permute(0, 3, 1, 2)
+    torch.testing.assert_close(rgba, (clean + 1) / 2, atol=1e-4, rtol=0)

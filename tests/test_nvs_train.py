@@ -56,10 +56,10 @@ def test_training_steps_overfit_one_sample(objects, prediction_type):
 
 
 def test_all_views_of_an_object_share_one_timestep(objects):
-    from diamond_sss.diffusion.nvs.model import make_train_scheduler
+    from diamond_sss.diffusion.common.schedulers import make_ddpm_scheduler
 
     model = NVSModel(NVSConfig(**TINY))
-    scheduler = make_train_scheduler(model.config)
+    scheduler = make_ddpm_scheduler(model.config.scheduler)
     seen = []
     add_noise = scheduler.add_noise
 

@@ -11,12 +11,14 @@ from tiny_models import TINY_NVS
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.conventions import intrinsics_matrix
 from diamond_sss.data.embedded import embedded_dataset
+from diamond_sss.diffusion.common.schedulers import make_ddim_scheduler
 from diamond_sss.diffusion.geometry import GeometryMaps, GeometrySource, StoredMapsGeometry
 from diamond_sss.diffusion.geometry.base import GeometryError
 from diamond_sss.diffusion.nvs import pipeline
 from diamond_sss.diffusion.nvs.convert import free3d_config
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, load_rgba_views, sample_batch
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
+from diamond_sss.diffusion.nvs.pipeline import NovelViewPipeline
 from diamond_sss.diffusion.nvs.warp import forward_warp, resize_depth
 
 OBJECT = "finetune/torus_jade"
@@ -150,22 +152,23 @@ def test_training_data_carries_the_reference_depth_and_the_model_trains_on_it(wa
     loss = model.training_loss(warp_batch, generator=torch.Generator().manual_seed(0))
     loss.backward()
     assert torch.isfinite(loss) and model.unet.conv_in.weight.grad[:, 8:].abs().sum() > 0
-    out = model.sample(warp_batch, num_steps=1, generator=torch.Generator().manual_seed(0))
-    assert out.shape == (1, 2, 4, 16, 16)
+    out = NovelViewPipeline(model)(warp_batch, num_steps=1, generator=torch.Generator().manual_seed(0))
+    assert out.rgb.shape == (2, 16, 16, 3)
 
 
 def test_hint_residual_with_a_zero_residual_oracle_returns_the_warp(warp_batch):
-    from diamond_sss.diffusion.nvs.model import hint_base, make_sample_scheduler
+    from diamond_sss.diffusion.nvs.model import hint_base
 
     model = NVSModel(NVSConfig(**TINY_NVS, hint_residual=True)).eval()
-    alphas = make_sample_scheduler(model.config).alphas_cumprod
+    alphas = make_ddim_scheduler(model.config.scheduler, model.config.sample_clip_range).alphas_cumprod
 
     def oracle(noisy, timesteps, reference, context, rays, num_views, hint=None):
         return noisy / (1 - alphas[timesteps].reshape(-1, 1, 1, 1)).sqrt()  # epsilon of a clean residual 0
 
     model.denoise = oracle
-    out = model.sample(warp_batch, num_steps=5, generator=torch.Generator().manual_seed(0))
-    expected = ((hint_base(model.warp_hint(warp_batch)) + 1) / 2).reshape(out.shape)
+    out = NovelViewPipeline(model)(warp_batch, num_steps=5, generator=torch.Generator().manual_seed(0))
+    out = torch.cat([out.rgb, out.alpha], dim=-1).permute(0, 3, 1, 2)
+    expected = (hint_base(model.warp_hint(warp_batch)) + 1) / 2
     torch.testing.assert_close(out, expected, atol=1e-4, rtol=0)
     with pytest.raises(ValueError, match="needs warp_hint=True"):
         NVSConfig(warp_hint=False, hint_residual=True)
@@ -175,7 +178,7 @@ def test_warp_model_refuses_a_batch_without_depth(warp_batch):
     model = NVSModel(NVSConfig(**TINY_NVS))
     warp_batch = type(warp_batch)(**{**vars(warp_batch), "reference_depth": None})
     with pytest.raises(ValueError, match="reference_depth"):
-        model.sample(warp_batch, num_steps=1)
+        NovelViewPipeline(model)(warp_batch, num_steps=1)
 
 
 def test_training_data_without_depth_maps_is_refused(tmp_path):
@@ -214,7 +217,7 @@ def test_generation_with_the_warp_hint_needs_metric_depth_and_keys_the_cache_by_
             tmp_path / out,
             0,
             0,
-            "1,2",
+            [1, 2],
             model_dir=model_dir,
             steps=1,
             cache_dir=tmp_path / "cache",

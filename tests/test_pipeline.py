@@ -166,12 +166,30 @@ def test_sanity_checks_drop_bad_generations(setup, tmp_path):
 
 
 def test_parse_augment_and_missing_models(setup, tmp_path):
-    from diamond_sss.pipeline.run import parse_augment, shipped_augments
+    from diamond_sss.pipeline.run import parse_augment
 
     assert parse_augment("none") == () and parse_augment("nvs, relight") == ("nvs", "relight")
-    assert parse_augment("auto") == shipped_augments()
     with pytest.raises(ValueError, match="unknown stage"):
         parse_augment("nvs,upscale")
     cfg = PipelineConfig(augment=("relight",), relight_model=str(tmp_path / "missing"))
     with pytest.raises(FileNotFoundError, match="no relight model in .*missing: pass --relight-model"):
         run_pipeline(setup[0], tmp_path / "run", overrides=TRAIN, config=cfg, show_progress=False)
+
+
+def test_auto_augment_follows_the_shipped_model_folders(tmp_path, monkeypatch):
+    from diamond_sss.diffusion.nvs import pipeline as nvs_pipeline
+    from diamond_sss.diffusion.relight import inference as relight_inference
+    from diamond_sss.pipeline.run import parse_augment
+
+    assert parse_augment("auto") == ("nvs", "relight")  # both models ship with the package
+    nvs_dir, relight_dir = tmp_path / "nvs", tmp_path / "relight"
+    monkeypatch.setattr(nvs_pipeline, "default_model_dir", lambda: nvs_dir)
+    monkeypatch.setattr(relight_inference, "shipped_model_path", lambda: relight_dir)
+    assert parse_augment("auto") == ()
+    relight_dir.mkdir()
+    (relight_dir / "config.json").write_text("{}")
+    assert parse_augment("auto") == ("relight",)
+    nvs_dir.mkdir()
+    assert parse_augment("auto") == ("relight",)  # a folder without config.json is no model
+    (nvs_dir / "config.json").write_text("{}")
+    assert parse_augment("auto") == ("nvs", "relight")

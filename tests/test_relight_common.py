@@ -6,10 +6,15 @@ import pytest
 import torch
 
 from diamond_sss.diffusion.common.cache import OutputCache
-from diamond_sss.diffusion.common.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from diamond_sss.diffusion.common.hashing import files_hash, state_dict_hash
 from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
-from diamond_sss.diffusion.common.sampling import SchedulerConfig, ddim_sample, make_ddim_scheduler
+from diamond_sss.diffusion.common.sampling import ddim_sample
+from diamond_sss.diffusion.common.schedulers import SchedulerConfig, make_ddim_scheduler
+from diamond_sss.training.checkpoint import (
+    latest_accelerate_checkpoint,
+    load_accelerate_checkpoint,
+    save_accelerate_checkpoint,
+)
 
 
 def test_cache_entries_are_keyed_and_atomic(tmp_path):
@@ -78,14 +83,14 @@ def test_checkpoints_are_complete_and_pruned(tmp_path):
     accelerator = make_accelerator()
     model = accelerator.prepare(torch.nn.Linear(2, 2))
     for step in (1, 2, 3):
-        save_checkpoint(accelerator, tmp_path, step, extra={"note": step}, keep=2)
+        save_accelerate_checkpoint(accelerator, tmp_path, step, extra={"note": step}, keep=2)
     assert [p.name for p in sorted(tmp_path.iterdir())] == ["step_00000002", "step_00000003"]
     (tmp_path / "step_00000009").mkdir()  # incomplete: no extra.json
-    assert latest_checkpoint(tmp_path).name == "step_00000003"
+    assert latest_accelerate_checkpoint(tmp_path).name == "step_00000003"
     saved = model.weight.detach().clone()
     with torch.no_grad():
         model.weight.zero_()
-    assert load_checkpoint(accelerator, tmp_path / "step_00000003") == {"step": 3, "note": 3}
+    assert load_accelerate_checkpoint(accelerator, tmp_path / "step_00000003") == {"step": 3, "note": 3}
     assert torch.equal(model.weight, saved)
 
 

@@ -9,7 +9,7 @@ import torch
 from tiny_models import TINY_RELIGHT, tiny_sd_unet, tiny_vae
 
 from diamond_sss.data.conventions import look_at_opengl_c2w, opengl_c2w_to_opencv_w2c
-from diamond_sss.diffusion.common.sampling import SchedulerConfig, make_ddpm_scheduler
+from diamond_sss.diffusion.common.schedulers import SchedulerConfig, make_ddpm_scheduler
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, image_to_model, model_to_image
 from diamond_sss.diffusion.relight.config import RelightModelConfig
@@ -21,6 +21,7 @@ from diamond_sss.diffusion.relight.hint import (
 )
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.diffusion.relight.model import RelightDiffusion
+from diamond_sss.diffusion.relight.pipeline import RelightPipeline
 
 
 def tiny_config(**overrides) -> RelightModelConfig:
@@ -97,8 +98,8 @@ def test_forward_and_sampling_shapes_are_seeded():
     model = tiny_model().eval()
     x, t, cond, code, src = random_inputs()
     assert model(x, t, cond, code, src).shape == x.shape
-    first = model.relight(cond, code, src, num_steps=3, generator=torch.Generator().manual_seed(7))
-    again = model.relight(cond, code, src, num_steps=3, generator=torch.Generator().manual_seed(7))
+    first = RelightPipeline(model).sample(cond, code, src, num_steps=3, generator=torch.Generator().manual_seed(7))
+    again = RelightPipeline(model).sample(cond, code, src, num_steps=3, generator=torch.Generator().manual_seed(7))
     assert first.shape == (2, 3, 16, 16) and torch.equal(first, again)
     assert float(first.abs().max()) <= 1.0
     assert torch.equal(tiny_model(seed=0).unet.conv_in.weight, model.unet.conv_in.weight)
@@ -174,7 +175,7 @@ def test_from_local_stable_diffusion_folder(tmp_path):
     latent = model.encode(torch.zeros(1, 3, 16, 16))
     assert latent.shape == (1, 4, 8, 8) and model.sample_shape(1) == (1, 4, 8, 8)
     _, _, cond, code, src = random_inputs(batch=1)
-    out = model.relight(cond, code, src, num_steps=2, generator=torch.Generator().manual_seed(0))
+    out = RelightPipeline(model).sample(cond, code, src, num_steps=2, generator=torch.Generator().manual_seed(0))
     assert out.shape == (1, 3, 16, 16) and bool(torch.isfinite(out).all())
     model.save(tmp_path / "latent")
     with torch.no_grad():
@@ -298,8 +299,8 @@ def test_residual_model_adds_the_hint_back():
     plain.light_tokens = model.light_tokens
     _, _, cond, code, src = random_inputs(batch=2)
     noise = torch.randn(model.sample_shape(2), generator=torch.Generator().manual_seed(2)) * 0.1
-    residual = model.relight(cond, code, src, num_steps=2, noise=noise)
-    direct = plain.relight(cond, code, src, num_steps=2, noise=noise)
+    residual = RelightPipeline(model).sample(cond, code, src, num_steps=2, noise=noise)
+    direct = RelightPipeline(plain).sample(cond, code, src, num_steps=2, noise=noise)
     hint = model.hint(cond, code, src)
     unclamped = (residual.abs() < 0.99) & (direct.abs() < 0.99)
     assert bool(unclamped.any())
@@ -321,3 +322,17 @@ def test_hint_blur_preserves_constants_and_spreads_light():
     assert float(blurred[0, 0, 7, 8] / blurred[0, 0, 7, 7]) == pytest.approx(math.exp(-0.5), rel=1e-4)
     assert float(blurred[0, 0, 8, 8] / blurred[0, 0, 7, 7]) == pytest.approx(math.exp(-1.0), rel=1e-4)
     assert torch.equal(gaussian_blur(impulse, 0.0), impulse)
+
+
+def test_the_pipeline_averages_samples_in_model_space_and_resizes():
+    model = tiny_model().eval()
+    _, _, cond, code, src = random_inputs(batch=2)
+    noise = torch.randn(2, *model.sample_shape(2), generator=torch.Generator().manual_seed(3))
+    pipeline = RelightPipeline(model)
+    single = [pipeline.sample(cond, code, src, num_steps=2, noise=n) for n in noise]
+    out = pipeline(cond, code, src, num_steps=2, noise=noise, samples=2)
+    assert out.alpha is None and out.rgb.shape == (2, 16, 16, 3)
+    torch.testing.assert_close(out.rgb, model_to_image((single[0] + single[1]) / 2), atol=1e-6, rtol=0)
+    assert pipeline(cond, code, src, num_steps=2, noise=noise, samples=2, size=(24, 20)).rgb.shape == (2, 24, 20, 3)
+    with pytest.raises(ValueError, match="expected 3"):
+        pipeline(cond, code, src, num_steps=2, noise=noise, samples=3)

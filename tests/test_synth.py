@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from diamond_sss.cli.synth_commands import synth
 from diamond_sss.data.conventions import (
     intrinsics_from_fov,
     opengl_c2w_to_opencv_w2c,
@@ -20,7 +21,6 @@ from diamond_sss.data.conventions import (
     project_points,
     unproject_pixels,
 )
-from diamond_sss.synth.cli import synth
 from diamond_sss.synth.materials import TranslucentMaterial, get_material, material_names
 from diamond_sss.synth.render import (
     OlatRenderer,

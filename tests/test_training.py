@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import stat
 
 import pytest
 import torch
@@ -14,9 +16,11 @@ from diamond_sss.data.analytic import make_capture
 from diamond_sss.evaluation.evaluate import evaluate_scene
 from diamond_sss.gaussians.ply import import_ply
 from diamond_sss.training.checkpoint import optimizer_from_tensors, optimizer_to_tensors
-from diamond_sss.training.config import PRESETS, TrainConfig, make_config
+from diamond_sss.training.config import PRESETS, TrainConfig
+from diamond_sss.training.overrides import make_config
+from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.schedules import exponential_lr, step_decay
-from diamond_sss.training.trainer import ImageSource, Trainer, load_scene
+from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.utils.io import load_safetensors
 
 TINY = {
@@ -39,32 +43,37 @@ def test_presets_follow_the_supplement():
     best = make_config("diamond")
     original = make_config("sss3dgs")
     # Tab. 4, "Best" and "Original"
-    assert (best.lambda_dssim, best.lambda_lpips, best.lambda_normal) == (0.492, 0.171, 0.037)
-    assert (original.lambda_dssim, original.lambda_lpips, original.lambda_normal) == (0.2, 0.2, 0.02)
-    assert (best.densify_until_iter, original.densify_until_iter) == (10_000, 15_000)
-    assert (best.densify_grad_threshold, original.densify_grad_threshold) == (0.001, 0.0002)
-    assert (best.opacity_reset_interval, original.opacity_reset_interval) == (1_000, 3_000)
-    assert (best.lambda_sil, best.lambda_depth, original.lambda_sil, original.lambda_depth) == (0.5, 0.3, 0, 0)
+    assert (best.losses.lambda_dssim, best.losses.lambda_lpips, best.losses.lambda_normal) == (0.492, 0.171, 0.037)
+    assert (original.losses.lambda_dssim, original.losses.lambda_lpips,
+            original.losses.lambda_normal) == (0.2, 0.2, 0.02)
+    assert (best.densify.refine_stop_iter, original.densify.refine_stop_iter) == (10_000, 15_000)
+    assert (best.densify.grow_grad2d, original.densify.grow_grad2d) == (0.001, 0.0002)
+    assert (best.densify.reset_every, original.densify.reset_every) == (1_000, 3_000)
+    assert (best.losses.lambda_sil, best.losses.lambda_depth,
+            original.losses.lambda_sil, original.losses.lambda_depth) == (0.5, 0.3, 0, 0)
     # Tab. 3
-    assert (best.position_lr_init, best.position_lr_final, best.position_lr_max_steps) == (0.00016, 1.6e-6, 30_000)
-    assert (best.opacity_lr, best.scaling_lr, best.sss_width, best.light_init) == (0.05, 0.005, 32, -1.0)
-    assert set(PRESETS["sss3dgs"]) <= set(TrainConfig().to_dict())
+    assert (best.lr.position_init, best.lr.position_final, best.lr.position_max_steps) == (0.00016, 1.6e-6, 30_000)
+    assert (best.lr.opacity, best.lr.scaling, best.shading.sss_width,
+            best.shading.light_init) == (0.05, 0.005, 32, -1.0)
+    assert PRESETS["diamond"] == TrainConfig() and best == PRESETS["diamond"]
+    best.losses.lambda_dssim = 0.9  # a resolved config is a copy: changing it leaves the preset alone
+    assert make_config("diamond").losses.lambda_dssim == PRESETS["diamond"].losses.lambda_dssim == 0.492
 
 
 def test_overrides_sets_and_config_files(tmp_path):
     cfg = make_config("sss3dgs", sets=["lambda_dssim=0.3", "densify=false", "iterations=1e3"])
-    assert (cfg.lambda_dssim, cfg.densify, cfg.iterations) == (0.3, False, 1000)
+    assert (cfg.losses.lambda_dssim, cfg.densify.enabled, cfg.schedule.iterations) == (0.3, False, 1000)
     path = tmp_path / "best.json"
     path.write_text(json.dumps({"lambda_normal": 0.05, "densification_interval": 120}))
     cfg = make_config("diamond", config_file=path, sets=["lambda_normal=0.06"])
-    assert (cfg.lambda_normal, cfg.densification_interval) == (0.06, 120)
+    assert (cfg.losses.lambda_normal, cfg.densify.refine_every) == (0.06, 120)
     with pytest.raises(ValueError, match="unknown config key 'lambda_dsim'"):
         make_config(sets=["lambda_dsim=0.3"])
     with pytest.raises(ValueError, match="'iterations' expects int, got '1.5'"):
         make_config(sets=["iterations=1.5"])
     with pytest.raises(ValueError, match="--set expects key=value"):
         make_config(sets=["lambda_dssim"])
-    with pytest.raises(ValueError, match="'lambda_mask' must be >= 0"):
+    with pytest.raises(ValueError, match="config key 'losses.lambda_mask' must be >= 0"):
         make_config(sets=["lambda_mask=-1"])
     path.write_text(json.dumps({"lambda_normal": "high"}))
     with pytest.raises(ValueError, match=r"best.json: config key 'lambda_normal' expects float"):
@@ -143,6 +152,34 @@ def test_training_improves_the_fit(capture, tmp_path):
     assert {"mv_silhouette", "mv_depth", "raytrace", "mask", "normal"} <= set(result.history[0])
 
 
+def test_step_callback_sees_every_step_and_can_stop_the_run(capture, tmp_path):
+    cfg = make_config("sss3dgs", overrides={**TINY, "iterations": 6, "densify": False, "log_every": 4})
+    dataset = OLATDataset(capture)
+    seen = []
+
+    def stop_at_three(done, scene, terms):
+        seen.append((done, scene.gaussians.num_gaussians, float(terms["total"])))
+        return done == 3
+
+    result = Trainer(cfg, [ImageSource(dataset)], tmp_path / "run", show_progress=False).run(on_step=stop_at_three)
+    assert [done for done, _, _ in seen] == [1, 2, 3] and all(n == 300 for _, n, _ in seen)
+    assert result.steps == 3 and [h["step"] for h in result.history] == [3]
+    assert result.final_loss == pytest.approx(seen[-1][2])
+    summary = json.loads((tmp_path / "run" / "train_summary.json").read_text())
+    assert summary["steps"] == 3 and (tmp_path / "run" / "model.safetensors").is_file()
+    # the same six steps from a given scene, in memory: nothing is written and the scene trains in place
+    straight = Trainer(cfg, [ImageSource(dataset)], tmp_path / "full", show_progress=False)
+    straight.run()
+    in_memory = Trainer(cfg, [ImageSource(dataset)], None, show_progress=False)
+    scene = in_memory.build_scene()
+    in_memory.run(scene=scene)
+    assert in_memory.scene is scene
+    assert torch.equal(scene.gaussians.means, straight.scene.gaussians.means)
+    assert not (tmp_path / "None").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["full", "run"]
+    with pytest.raises(ValueError, match="resuming needs a run_dir"):
+        in_memory.run(resume=True)
+
+
 def test_densification_changes_the_gaussian_count(capture, tmp_path):
     cfg = make_config("sss3dgs", overrides={**TINY, "iterations": 6, "densification_interval": 3,
                                             "densify_grad_threshold": 1e-7})
@@ -151,13 +188,27 @@ def test_densification_changes_the_gaussian_count(capture, tmp_path):
 
 
 def test_cli_train_eval_render_export(capture, tmp_path, capsys):
+    previous_umask = os.umask(0o027)
+    try:
+        _train_eval_render_export(capture, tmp_path, capsys)
+    finally:
+        os.umask(previous_umask)
+    files = [p for p in tmp_path.rglob("*") if p.is_file()]
+    folders = [p for p in tmp_path.rglob("*") if p.is_dir()]
+    assert {p.suffix for p in files} >= {".json", ".safetensors", ".png", ".gif", ".ply", ".csv"}
+    assert {p.relative_to(tmp_path).as_posix(): oct(stat.S_IMODE(p.stat().st_mode)) for p in files
+            if stat.S_IMODE(p.stat().st_mode) != 0o640} == {}
+    assert {p.relative_to(tmp_path).as_posix() for p in folders if stat.S_IMODE(p.stat().st_mode) != 0o750} == set()
+
+
+def _train_eval_render_export(capture, tmp_path, capsys):
     run = tmp_path / "run"
     sets = [arg for key, value in TINY.items() for arg in ("--set", f"{key}={value}")]
     main(["train", "--data", str(capture), "--out", str(run), "--regime", "views=50%,lights=all",
           "--iterations", "3", "--quiet", *sets])
     regime = json.loads((run / "regime.json").read_text())
     assert len(regime["views"]) == 3 and regime["images"] == 9
-    assert json.loads((run / "config.json").read_text())["iterations"] == 3
+    assert json.loads((run / "config.json").read_text())["schedule"]["iterations"] == 3
     capsys.readouterr()
     main(["eval", "--run", str(run), "--data", str(capture), "--split", "test", "--json"])
     metrics = json.loads(capsys.readouterr().out)
@@ -170,6 +221,10 @@ def test_cli_train_eval_render_export(capture, tmp_path, capsys):
     assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == ["frame_0000.png", "frame_0001.png"]
     main(["render", "--run", str(run), "--out", str(tmp_path / "orbit"), "--orbit", "3", "--size", "12"])
     assert (tmp_path / "orbit" / "orbit.gif").is_file()
+    with pytest.raises(SystemExit):
+        main(["render", "--run", str(run), "--out", str(tmp_path / "orbit2"), "--orbit", "3", "--video", "o.avi"])
+    assert "expected a file name ending in .gif or .mp4" in capsys.readouterr().err
+    assert not (tmp_path / "orbit2").exists()  # refused before rendering
     main(["export", "--run", str(run), "--ply", str(tmp_path / "scene.ply")])
     scene, _ = load_scene(run)
     assert import_ply(tmp_path / "scene.ply").num_gaussians == scene.gaussians.num_gaussians

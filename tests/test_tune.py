@@ -16,17 +16,17 @@ from diamond_sss.cli.tune_commands import tune
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.evaluation.evaluate import evaluate_scene
-from diamond_sss.training.config import PRESETS, field_types, make_config
+from diamond_sss.training.config import SCHEDULE_KEYS, canonical_key, field_types, scale_schedule
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.tuning import objective as objective_module
 from diamond_sss.tuning.objective import Objective, ObjectiveSettings
 from diamond_sss.tuning.report import comparison_table
+from diamond_sss.tuning.run import run_study
 from diamond_sss.tuning.space import (
-    SCHEDULE_KEYS,
     SEARCH_SPACE,
     distributions,
     preset_params,
-    scale_schedule,
     suggest_params,
 )
 from diamond_sss.tuning.study import StudySettings, budget_used, make_storage, open_study, run_worker
@@ -46,15 +46,18 @@ def capture(tmp_path_factory):
 
 
 def test_search_space_is_tab4_and_brackets_both_columns():
-    tab4 = set(PRESETS["sss3dgs"]) - {"lambda_sil", "lambda_depth"}
-    assert set(SEARCH_SPACE) == tab4
+    tab4 = {"lambda_dssim", "lambda_lpips", "lambda_normal", "lambda_visibility", "lambda_incident_light",
+            "lambda_base_color", "lambda_base_color_smooth", "lambda_metallic_smooth", "lambda_roughness_smooth",
+            "lambda_subsurfacedness_smooth", "densification_interval", "opacity_reset_interval",
+            "densify_from_iter", "densify_until_iter", "densify_grad_threshold"}
+    assert set(SEARCH_SPACE) == tab4  # flat names: the trial parameters of every study, old and new
     types = field_types()
     for preset in ("sss3dgs", "diamond"):
         values = preset_params(preset)
         for key, dist in distributions().items():
             value = values[key]
             assert dist.low <= value <= dist.high, (preset, key, value)
-            assert isinstance(value, types[key])
+            assert isinstance(value, types[canonical_key(key)])
             if isinstance(dist, optuna.distributions.IntDistribution):
                 assert (value - dist.low) % dist.step == 0, (preset, key, value)
     fixed = optuna.trial.FixedTrial(preset_params("sss3dgs"))
@@ -65,14 +68,17 @@ def test_search_space_is_tab4_and_brackets_both_columns():
 
 def test_schedule_keys_scale_with_the_trial_length():
     params = preset_params("sss3dgs")
-    scaled = scale_schedule(params, 0.05)
+    scaled = scale_schedule(params, 0.05, floors={})  # as the trials scale it
     assert (scaled["densification_interval"], scaled["opacity_reset_interval"]) == (5, 150)
     assert (scaled["densify_from_iter"], scaled["densify_until_iter"]) == (25, 750)
-    assert all(scaled[k] == params[k] for k in params if k not in SCHEDULE_KEYS)
-    assert all(v == 1 for k, v in scale_schedule(params, 1e-6).items() if k in SCHEDULE_KEYS)
+    assert all(scaled[k] == params[k] for k in params if canonical_key(k) not in SCHEDULE_KEYS)
+    assert all(v == 1 for k, v in scale_schedule(params, 1e-6, floors={}).items()
+               if canonical_key(k) in SCHEDULE_KEYS)
     settings = ObjectiveSettings(iterations=500, overrides={"device": "cpu"})
     cfg = settings.trial_config(params)
-    assert (settings.scale, cfg.iterations, cfg.densify_until_iter, cfg.lambda_dssim) == (0.05, 500, 750, 0.2)
+    assert (settings.scale, cfg.schedule.iterations, cfg.densify.refine_stop_iter,
+            cfg.losses.lambda_dssim) == (0.05, 500, 750, 0.2)
+    assert cfg.densify.refine_every == 5  # trials keep every searched value distinct: no floors
     with pytest.raises(ValueError, match="schedule scale must be positive"):
         scale_schedule(params, 0.0)
 
@@ -129,7 +135,7 @@ def _scripted_study(tmp_path, capture, monkeypatch, psnr_of_trial, fail_training
     def fake_step(self, scene, optimizers, state, step):
         if current["trial"] in fail_training_of:
             raise FloatingPointError(f"loss is nan at step {step}")
-        return {}
+        return {"total": torch.zeros(())}
 
     def fake_psnr(scene, dataset):
         return psnr_of_trial(current["trial"])
@@ -138,7 +144,7 @@ def _scripted_study(tmp_path, capture, monkeypatch, psnr_of_trial, fail_training
     monkeypatch.setattr(objective_module, "validation_psnr", fake_psnr)
     data = load_tune_data(capture, validation_images=1)
     settings = ObjectiveSettings(overrides={**TINY, "device": "cpu"}, iterations=3, report_every=1)
-    objective = Objective(data, settings, tmp_path / "trials")
+    objective = Objective(data, settings)
 
     def tracked(trial):
         current["trial"] = trial.number
@@ -168,6 +174,20 @@ def test_median_pruner_stops_a_poor_trial(capture, tmp_path, monkeypatch):
     assert [t.state for t in study.trials] == [TrialState.COMPLETE, TrialState.COMPLETE, TrialState.PRUNED]
     assert study.trials[0].intermediate_values == {1: 20.0, 2: 20.0, 3: 20.0}
     assert study.trials[2].intermediate_values == {1: 10.0, 2: 10.0}  # warm-up step 1, pruned at step 2
+
+
+def test_run_study_is_the_job_behind_the_cli(capture, tmp_path):
+    data = load_tune_data(capture, validation_images=1)
+    settings = ObjectiveSettings(overrides={**TINY, "device": "cpu"}, iterations=2, report_every=1)
+    study = StudySettings(storage=f"sqlite:///{tmp_path / 'study.db'}", pruner_warmup_steps=2)
+    with pytest.raises(ValueError, match="--trials 1: a study starts with the two preset trials"):
+        run_study(data, tmp_path / "out", settings, study, trials=1)
+    result = run_study(data, tmp_path / "out", settings, study, trials=2)
+    assert result.ran == [0, 1] and [t.user_attrs["preset"] for t in result.study.trials] == ["sss3dgs", "diamond"]
+    assert all(t.intermediate_values.keys() == {1, 2} for t in result.study.trials)
+    assert set(result.paths) == {"plot", "table", "config", "best_trial", "trials"} and all(p.is_file() for p in result.paths.values())
+    again = run_study(data, tmp_path / "out", settings, study, trials=2, report_only=True)
+    assert again.ran == [] and again.study.best_trial.value == result.study.best_trial.value
 
 
 def test_tune_rejects_contradictory_options(capture, tmp_path):
@@ -207,8 +227,8 @@ def test_tiny_study_end_to_end_on_sqlite(capture, tmp_path):
     assert all(f"| {key} |" in table for key in SEARCH_SPACE) and f"Best (trial {best.number})" in table
     assert f"{best.value:.2f}" in table.splitlines()[-1]
     config = make_config("sss3dgs", config_file=out / "best_config.json")
-    assert all(getattr(config, key) == value for key, value in best.params.items())
-    assert (config.num_gaussians, config.init, config.lambda_sil) == (64, "random", 0.0)
+    assert all(config.get(key) == value for key, value in best.params.items())
+    assert (config.gaussians.count, config.gaussians.init, config.losses.lambda_sil) == (64, "random", 0.0)
     assert "iterations" not in json.loads((out / "best_config.json").read_text())
     assert len((out / "trials.csv").read_text().splitlines()) == 4
     main(["train", "--data", str(capture), "--out", str(tmp_path / "run"),

@@ -12,12 +12,12 @@ import torch
 from diamond_sss.data.conventions import look_at_opengl_c2w, opengl_c2w_to_opencv_w2c
 from diamond_sss.data.images import to_srgb8
 from diamond_sss.gaussians.model import GaussianModel
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.model import RelightableScene
 from diamond_sss.viewer import (
     ViewSettings,
-    intrinsics_from_fov,
     light_from_angles,
     render_frame,
+    view_intrinsics,
     viser_camera_to_w2c,
 )
 
@@ -50,11 +50,11 @@ def test_viser_camera_matches_the_data_convention():
 
 
 def test_intrinsics_and_light_known_answers():
-    K, width, height = intrinsics_from_fov(math.pi / 2, 1.5, 100)
+    K, width, height = view_intrinsics(math.pi / 2, 1.5, 100)
     assert (width, height) == (150, 100)
     assert torch.allclose(K, torch.tensor([[50.0, 0, 75.0], [0, 50.0, 50.0], [0, 0, 1]]), atol=1e-4)
     with pytest.raises(ValueError, match="field of view"):
-        intrinsics_from_fov(0.0, 1.0, 10)
+        view_intrinsics(0.0, 1.0, 10)
     settings = ViewSettings(azimuth_deg=90.0, elevation_deg=0.0, distance_radii=3.0)
     assert torch.allclose(
         light_from_angles(torch.tensor([1.0, 0, 0]), 2.0, settings), torch.tensor([1.0, 6.0, 0]), atol=1e-5
@@ -68,7 +68,7 @@ def test_intrinsics_and_light_known_answers():
 def test_frame_is_the_renderers_image_and_channels_differ():
     scene = small_scene().eval()
     w2c = opengl_c2w_to_opencv_w2c(look_at_opengl_c2w(torch.tensor([0.0, -2.5, 0.5]), torch.zeros(3))).float()
-    K, width, height = intrinsics_from_fov(math.radians(40.0), 1.0, 24)
+    K, width, height = view_intrinsics(math.radians(40.0), 1.0, 24)
     settings = ViewSettings(
         azimuth_deg=-60.0, elevation_deg=20.0, intensity=2.0, overrides={"roughness": 0.3}
     )
@@ -117,3 +117,49 @@ def test_server_builds_its_gui_and_follows_it():
         assert viewer.refresh() == 0  # no browser connected: nothing to render
     finally:
         server.stop()
+
+
+def test_loopback_hosts_and_urls():
+    from diamond_sss.viewer.server import is_loopback, viewer_url
+
+    assert is_loopback("127.0.0.1") and is_loopback("localhost") and is_loopback("::1")
+    assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.4") and not is_loopback("example.org")
+    assert viewer_url("127.0.0.1", 8080) == "http://127.0.0.1:8080"
+    assert viewer_url("::1", 9000) == "http://[::1]:9000"
+
+
+@pytest.mark.parametrize("host, warned", [(None, False), ("0.0.0.0", True)])
+def test_serve_binds_loopback_by_default_and_warns_when_exposed(monkeypatch, capsys, caplog, host, warned):
+    pytest.importorskip("viser")
+    from diamond_sss.training import run_folder
+    from diamond_sss.viewer import server as server_module
+
+    bound = {}
+
+    class FakeServer:
+        def __init__(self, host, port):
+            bound["host"] = host
+
+        def get_port(self):
+            return 8123
+
+        def stop(self):
+            bound["stopped"] = True
+
+    class InterruptedViewer:
+        def __init__(self, *args):
+            pass
+
+        def refresh(self):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_folder, "load_scene", lambda run, device: (small_scene(), None))
+    monkeypatch.setattr(server_module.viser, "ViserServer", FakeServer)
+    monkeypatch.setattr(server_module, "SceneViewer", InterruptedViewer)
+    kwargs = {} if host is None else {"host": host}
+    server_module.serve("run", device="cpu", **kwargs)
+    expected = host or "127.0.0.1"
+    assert bound == {"host": expected, "stopped": True}
+    assert f"http://{expected}:8123" in capsys.readouterr().out
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert bool(warnings) == warned and all("0.0.0.0" in w for w in warnings)

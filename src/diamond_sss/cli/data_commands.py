@@ -26,8 +26,15 @@ def info(data: Path, split: str = "train", json: bool = False, downscale: float 
         return
     table = Table(title=f"{data} [{split}]", show_header=False)
     for key, value in summary.items():
-        table.add_row(key, str(value))
+        table.add_row(key, format_bounds(value) if key == "bounds" else str(value))
     Console().print(table)
+
+
+def format_bounds(bounds: dict) -> str:
+    """Scene bounds as text: ``center (x, y, z), radius r, near n, far f`` (4 significant digits)."""
+    center = ", ".join(f"{x + 0.0:.4g}" for x in bounds["center"])
+    return (f"center ({center}), radius {bounds['radius']:.4g}, near {bounds['near']:.4g}, "
+            f"far {bounds['far']:.4g}")
 
 
 def regimes(data: Path, regime: str = "all", split: str = "train", seed: int = 0, json: bool = False) -> None:

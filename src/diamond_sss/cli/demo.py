@@ -35,10 +35,11 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
     from diamond_sss.data.embedded import embedded_dataset
     from diamond_sss.evaluation.evaluate import render_observation
     from diamond_sss.evaluation.figures import save_image_grid, to_display
+    from diamond_sss.evaluation.run import evaluate_run
     from diamond_sss.pipeline.run import PipelineConfig, parse_augment, run_pipeline
     from diamond_sss.training.config import short_schedule
-    from diamond_sss.training.run import evaluate_run, train_run
-    from diamond_sss.training.trainer import load_scene
+    from diamond_sss.training.run import train_run
+    from diamond_sss.training.run_folder import load_scene
     from diamond_sss.utils.io import atomic_write_text
 
     root = data if data is not None else embedded_dataset()

@@ -3,28 +3,26 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
+import tyro
 from rich.console import Console
+
+from diamond_sss.cli.options import config_from, options_of
+from diamond_sss.diffusion.nvs.config import FinetuneConfig, NVSConfig
+
+FinetuneOptions = options_of(FinetuneConfig, exclude=("model",))
+NVSModelOptions = options_of(NVSConfig, include=("space", "image_size", "prediction_type", "hint_residual"))
 
 
 def finetune_nvs(
     out: Path,
     data: list[Path] | None = None,
-    steps: int = 1000,
-    objects_per_batch: int = 4,
-    views_per_object: int = 4,
-    learning_rate: float = 1e-4,
-    warmup_steps: int = 100,
-    image_size: int = 32,
-    space: str = "pixel",
-    prediction_type: str = "epsilon",
     warp_hint: bool | None = None,
-    hint_residual: bool = False,
     vae: Path | None = None,
-    gradient_checkpointing: bool = True,
-    checkpoint_every: int = 200,
-    seed: int = 0,
     resume: bool = True,
+    training: Annotated[FinetuneOptions, tyro.conf.OmitArgPrefixes] = FinetuneOptions(),  # noqa: B008
+    model: Annotated[NVSModelOptions, tyro.conf.OmitArgPrefixes] = NVSModelOptions(),  # noqa: B008
 ) -> None:
     """Fine-tune the Free3D-style novel-view model on fixed-illumination multi-view sequences.
 
@@ -33,51 +31,24 @@ def finetune_nvs(
     Args:
         out: run folder.
         data: OLAT data folders (default: the embedded fine-tuning objects).
-        steps: optimisation steps.
-        objects_per_batch: objects per step (one sequence each).
-        views_per_object: target views per object (all share one timestep).
-        learning_rate: AdamW learning rate after warm-up.
-        warmup_steps: linear warm-up steps.
-        image_size: side of the generated images (pixels; latent space: 8x the latent side).
-        space: pixel (small offline default) or latent (needs --vae).
-        prediction_type: epsilon (Free3D's objective) or v_prediction (steadier for small pixel models).
         warp_hint: feed the reference forward-warped with its stored depth maps (default: on in pixel space;
             pixel space only).
-        hint_residual: denoise the residual from the warped reference where it is valid (needs the warp hint).
         vae: local diffusers AutoencoderKL folder for latent space.
-        gradient_checkpointing: recompute activations of every ResNet/transformer block in the backward pass.
-        checkpoint_every: steps between atomic checkpoints.
-        seed: seed of the model initialisation and of the sampled training stream.
         resume: continue from the newest checkpoint in --out.
+        training: fine-tuning settings (FinetuneConfig).
+        model: the model's settings (NVSConfig).
     """
     from diamond_sss.data.embedded import FINETUNE_PREFIX, embedded_dataset, embedded_dataset_names
-    from diamond_sss.diffusion.nvs.model import NVSConfig
-    from diamond_sss.diffusion.nvs.train import FinetuneConfig, finetune
+    from diamond_sss.diffusion.nvs.train import finetune
 
     if data is None:
         names = [n for n in embedded_dataset_names() if n.startswith(FINETUNE_PREFIX)]
         data = [embedded_dataset(n) for n in names]
     if not data:
         raise ValueError("no fine-tuning data: pass --data or install the embedded fine-tuning objects")
-    model = NVSConfig(
-        space=space,
-        image_size=image_size,
-        vae_path=None if vae is None else str(vae),
-        prediction_type=prediction_type,
-        warp_hint=space == "pixel" if warp_hint is None else warp_hint,
-        hint_residual=hint_residual,
-    )
-    config = FinetuneConfig(
-        steps=steps,
-        objects_per_batch=objects_per_batch,
-        views_per_object=views_per_object,
-        learning_rate=learning_rate,
-        warmup_steps=warmup_steps,
-        gradient_checkpointing=gradient_checkpointing,
-        checkpoint_every=checkpoint_every,
-        seed=seed,
-        model=model,
-    )
+    nvs_config = config_from(NVSConfig, model, vae_path=None if vae is None else str(vae),
+                             warp_hint=model.space == "pixel" if warp_hint is None else warp_hint)
+    config = config_from(FinetuneConfig, training, model=nvs_config)
     console = Console()
     folder = finetune(data, out, config, resume=resume, log=console.print)
     console.print(f"model -> {folder}")
@@ -100,8 +71,8 @@ def nvs(
 ) -> None:
     """Generate novel views of an object under a fixed light from one reference image (Free3D-style model).
 
-    Writes <out>/<name>.png (sRGB, premultiplied, with alpha), <out>/<name>_mask.png and <out>/manifest.json
-    (a list of {view, light, image, mask}); results are cached by model hash and input hash.
+    Writes <out>/images/<name>.png (sRGB, premultiplied, with alpha), <out>/masks/<name>.png and
+    <out>/manifest.json (a list of {view, light, image, mask}); results are cached by model hash and input hash.
 
     Args:
         data: OLAT data folder holding transforms_<split>.json.
@@ -120,15 +91,16 @@ def nvs(
         geometry: metric depth of the reference for models with the warp hint: a reconstruction run folder
             (holding model.safetensors) or 'maps' (depth maps stored with the data).
     """
+    from diamond_sss.data.dataset import OLATDataset
     from diamond_sss.diffusion.geometry import geometry_source
-    from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
+    from diamond_sss.diffusion.nvs.pipeline import generate_novel_views, parse_targets
 
     manifest = generate_novel_views(
         data,
         out,
         view,
         light,
-        targets,
+        parse_targets(targets, OLATDataset(data, split)),
         split=split,
         model_dir=model,
         steps=steps,
@@ -139,3 +111,55 @@ def nvs(
         geometry=None if geometry is None else geometry_source(geometry, device=device, seed=seed),
     )
     Console().print(f"novel views -> {manifest}")
+
+
+def convert_free3d(src: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SRC")],
+                   out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")], image_size: int = 256, vae: Path | None = None, seed: int = 0,
+                   half: bool = False) -> None:
+    """Convert the official Free3D checkpoint into a novel-view model folder (config.json + model.safetensors).
+
+    The UNet (with ray conditioning and multi-view attention) and the context projection come from the
+    checkpoint; Free3D embeds the reference with CLIP, which this model replaces by a small reference
+    encoder: that encoder starts from a seeded initialisation and needs fine-tuning before the model
+    conditions on the reference. The VAE is not converted: give the SD 1.x VAE as a diffusers folder.
+
+    Args:
+        src: official checkpoint (.ckpt with a state_dict, or .safetensors).
+        out: model folder to write (for `nvs --model` and `run --nvs-model`).
+        image_size: side of the generated images in pixels (Free3D: 256).
+        vae: local diffusers AutoencoderKL folder recorded in config.json (latent space).
+        seed: seed of the reference encoder's initialisation.
+        half: store the weights in float16.
+    """
+    from diamond_sss.diffusion.nvs.convert import free3d_config
+
+    config = free3d_config(image_size=image_size, vae_path=None if vae is None else str(vae))
+    folder, count = write_free3d_model(src, out, config, seed=seed, half=half)
+    Console().print(f"{count} tensors from {src} -> {folder} (use it with --model / --nvs-model)")
+
+
+def write_free3d_model(src: Path, out: Path, config, seed: int = 0, half: bool = False) -> tuple[Path, int]:
+    """Write the model folder of ``convert-free3d`` for ``config`` (an NVSConfig); returns it and the number
+    of tensors taken from the checkpoint."""
+    import pickle
+    from dataclasses import asdict
+
+    import torch
+
+    from diamond_sss.diffusion.common.model_io import save_model
+    from diamond_sss.diffusion.nvs.convert import load_free3d_checkpoint
+    from diamond_sss.diffusion.nvs.model import MODEL_KIND, ReferenceEncoder
+
+    try:
+        converted, _ = load_free3d_checkpoint(src, config)
+    except KeyError as exc:
+        raise ValueError(f"{src}: not an official Free3D checkpoint ({exc.args[0]})") from exc
+    except (pickle.UnpicklingError, RuntimeError, EOFError) as exc:
+        raise ValueError(f"{src}: damaged or unreadable checkpoint ({exc})") from exc
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        encoder = ReferenceEncoder(config.model_channels, config.encoder_channels, config.embed_dim)
+    tensors = {**converted, **{f"reference_encoder.{k}": v for k, v in encoder.state_dict().items()},
+               "null_embedding": torch.zeros(config.embed_dim)}
+    save_model(out, MODEL_KIND, asdict(config), tensors, half=half)
+    return Path(out), len(converted)

@@ -4,19 +4,22 @@ from __future__ import annotations
 
 import json as json_module
 from pathlib import Path
+from typing import Annotated
 
+import tyro
 from rich.console import Console
 
-from diamond_sss.cli.train_commands import SetArg
+from diamond_sss.cli.options import SetArg, config_from, options_of
+from diamond_sss.pipeline.config import PipelineConfig
+
+PipelineOptions = options_of(PipelineConfig, exclude=("augment",))
+"""Every :class:`PipelineConfig` field but ``augment`` (given as text: ``--augment auto``), as ``--flag``."""
 
 
 def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lights=5%", preset: str = "diamond",
-        augment: str = "auto", iterations: int | None = None, set_: SetArg = [],  # noqa: B006
-        nvs_views: int = 12, relight_lights: int = 8, nvs_model: str | None = None,
-        relight_model: str | None = None, nvs_steps: int = 1, relight_steps: int = 1,
-        relight_samples: int = 8, cache_dir: str | None = None, prelim_run: Path | None = None,
-        min_real_share: float = 0.5, seed: int = 0,
-        device: str = "cpu", json: bool = False, quiet: bool = False) -> None:
+        augment: str = "auto", iterations: int | None = None, set_: SetArg = [], seed: int = 0,  # noqa: B006
+        json: bool = False, quiet: bool = False,
+        pipeline: Annotated[PipelineOptions, tyro.conf.OmitArgPrefixes] = PipelineOptions()) -> None:  # noqa: B008
     """Diffusion-augmented sparse reconstruction (supplement Sec. C.4): prelim -> nvs -> relight -> final -> eval.
 
     Every stage is cached and resumable (rerun the same command after a kill); pipeline.json records inputs,
@@ -30,35 +33,18 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         preset: reconstruction preset for the preliminary and final reconstructions.
         augment: auto (the stages whose model ships with the package) | none | nvs | relight | nvs,relight.
         iterations: training steps of each reconstruction (default: the preset's).
-        nvs_views: at most this many missing views generated per real light (0: all).
-        relight_lights: at most this many missing lights generated per view (0: all).
-        nvs_model: folder of a novel-view model (default: the shipped one).
-        relight_model: folder of a relighting model (default: the shipped one).
-        nvs_steps: DDIM steps of the novel-view model (the shipped model is best with 1).
-        relight_steps: DDIM steps of the relighting model (the shipped model is best with 1).
-        relight_samples: relighting samples averaged per image (test-time ensemble).
-        cache_dir: cache of generated images (default: ~/.cache/diamond_sss or $DIAMOND_SSS_CACHE).
-        prelim_run: a finished reconstruction of the same real images (a `train` run folder with this --regime
-            and --seed) used as the preliminary one instead of training it.
-        min_real_share: the real images are repeated in the final reconstruction's training set until they make
-            up at least this share of the images drawn (0: each image once, as the paper).
         seed: seed of the regime, reconstructions and diffusion noise.
-        device: cpu | cuda for the diffusion models (reconstructions use --set device=...).
         json: print the final metrics as JSON.
         quiet: no progress bars.
+        pipeline: the pipeline's settings (PipelineConfig).
     """
-    from diamond_sss.pipeline.run import PipelineConfig, parse_augment, run_pipeline
-    from diamond_sss.training.config import parse_sets
+    from diamond_sss.pipeline.run import parse_augment, run_pipeline
+    from diamond_sss.training.overrides import parse_sets
 
-    stages = parse_augment(augment)
     overrides = parse_sets(set_)
     if iterations is not None:
         overrides["iterations"] = iterations
-    cfg = PipelineConfig(augment=stages, nvs_views=nvs_views, relight_lights=relight_lights, nvs_model=nvs_model,
-                         relight_model=relight_model, nvs_steps=nvs_steps, relight_steps=relight_steps,
-                         relight_samples=relight_samples, cache_dir=cache_dir,
-                         prelim_run=str(prelim_run) if prelim_run else None, min_real_share=min_real_share,
-                         device=device)
+    cfg = config_from(PipelineConfig, pipeline, augment=parse_augment(augment))
     result = run_pipeline(data, out, split=split, regime=regime, preset=preset, overrides=overrides, seed=seed,
                           config=cfg, show_progress=not quiet)
     if json:

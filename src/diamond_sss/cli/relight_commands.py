@@ -3,29 +3,29 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
+import tyro
 from rich.console import Console
+
+from diamond_sss.cli.options import config_from, options_of
+from diamond_sss.diffusion.relight.config import RelightAugmentConfig, RelightModelConfig, RelightTrainConfig
+
+RelightTrainOptions = options_of(RelightTrainConfig, exclude=("losses", "augment"))
+RelightModelOptions = options_of(RelightModelConfig, include=("resolution", "use_source_light", "shading_hint"))
 
 
 def finetune_relight(
     out: Path,
-    steps: int = 2000,
-    batch_size: int = 8,
-    learning_rate: float = 5e-4,
-    seed: int = 0,
     pretrained_sd: Path | None = None,
     init: Path | None = None,
     data: list[Path] | None = None,
-    resolution: int = 64,
-    use_source_light: bool = False,
-    shading_hint: bool = True,
     augment: bool = True,
     lpips_weights: str | None = None,
-    mixed_precision: str = "no",
-    time_limit_s: float | None = None,
-    checkpoint_every: int = 100,
     resume: bool = True,
     quiet: bool = False,
+    training: Annotated[RelightTrainOptions, tyro.conf.OmitArgPrefixes] = RelightTrainOptions(),  # noqa: B008
+    model: Annotated[RelightModelOptions, tyro.conf.OmitArgPrefixes] = RelightModelOptions(),  # noqa: B008
 ) -> None:
     """Fine-tune the relighting diffusion model on the embedded fine-tuning objects (view fixed, <= 7%).
 
@@ -34,59 +34,38 @@ def finetune_relight(
 
     Args:
         out: run folder.
-        steps: optimisation steps.
-        batch_size: (source, target) light pairs per step.
-        learning_rate: AdamW peak learning rate.
-        seed: seed of the initialisation, batches and noise.
         pretrained_sd: local Stable Diffusion folder (diffusers format): latent-space model (paper's route).
         init: start from the weights of a relighting model folder (config.json + model.safetensors).
         data: data folders to use instead of the embedded fine-tuning objects.
-        resolution: model resolution in pixels (pixel-space default model: 64).
-        use_source_light: also condition on the source light's code.
-        shading_hint: give the ControlNet the Lambertian shading hint and denoise the residual from it.
         augment: mirror the pairs, vary their exposure and tint, permute their colours (exact symmetries of light
             transport).
         lpips_weights: LPIPS (VGG) weights in safetensors; the LPIPS term is skipped without them.
-        mixed_precision: no | fp16 | bf16 (GPU only).
-        time_limit_s: stop after this much wall time (checkpoint and weights are written).
-        checkpoint_every: steps between atomic checkpoints.
         resume: continue from the newest checkpoint in <out>/checkpoints.
         quiet: no log lines.
+        training: fine-tuning settings (RelightTrainConfig).
+        model: the model's settings (RelightModelConfig; the shading hint also makes the model denoise the
+            residual from it).
     """
-    from diamond_sss.diffusion.relight.augment import RelightAugmentConfig
-    from diamond_sss.diffusion.relight.config import RelightModelConfig
     from diamond_sss.diffusion.relight.data import load_finetune_views, load_relight_views
     from diamond_sss.diffusion.relight.model import RelightDiffusion
-    from diamond_sss.diffusion.relight.train import RelightTrainConfig, finetune
+    from diamond_sss.diffusion.relight.train import finetune
     from diamond_sss.losses.lpips import load_lpips
 
-    model_config = RelightModelConfig(
-        resolution=resolution,
-        use_source_light=use_source_light,
-        shading_hint=shading_hint,
-        residual=shading_hint,
-    )
+    model_config = config_from(RelightModelConfig, model, residual=model.shading_hint)
+    seed = training.seed
     if init is not None:
-        model = RelightDiffusion.load(init)
+        relight_model = RelightDiffusion.load(init)
     elif pretrained_sd is not None:
-        model = RelightDiffusion.from_pretrained_sd(pretrained_sd, model_config, seed=seed)
+        relight_model = RelightDiffusion.from_pretrained_sd(pretrained_sd, model_config, seed=seed)
     else:
-        model = RelightDiffusion.from_config(model_config, seed=seed)
+        relight_model = RelightDiffusion.from_config(model_config, seed=seed)
     views = (
-        load_relight_views(list(data), model.config.resolution)
+        load_relight_views(list(data), relight_model.config.resolution)
         if data
-        else load_finetune_views(model.config.resolution)
+        else load_finetune_views(relight_model.config.resolution)
     )
-    config = RelightTrainConfig(
-        steps=steps,
-        batch_size=batch_size,
-        learning_rate=learning_rate,
-        seed=seed,
-        mixed_precision=mixed_precision,
-        time_limit_s=time_limit_s,
-        checkpoint_every=checkpoint_every,
-        augment=RelightAugmentConfig() if augment else RelightAugmentConfig.off(),
-    )
+    config = config_from(RelightTrainConfig, training,
+                         augment=RelightAugmentConfig() if augment else RelightAugmentConfig.off())
     console = Console()
     lpips = load_lpips(lpips_weights)
 
@@ -96,7 +75,7 @@ def finetune_relight(
                 " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in record.items())
             )
 
-    folder = finetune(views, out, model, config, lpips=lpips, resume=resume, log=log)
+    folder = finetune(views, out, relight_model, config, lpips=lpips, resume=resume, log=log)
     console.print(f"relighting model -> {folder}")
 
 

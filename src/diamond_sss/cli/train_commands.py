@@ -5,19 +5,17 @@ from __future__ import annotations
 import json as json_module
 import math
 from pathlib import Path
-from typing import Annotated
 
-import tyro
 from rich.console import Console
 from rich.table import Table
 
-SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
-                  tyro.conf.arg(name="set", help="override a config key: --set key=value (repeatable)")]
+from diamond_sss.cli.options import SetArg
 
 
 def train(data: Path, out: Path, split: str = "train", regime: str = "all", preset: str = "diamond",
-          iterations: int | None = None, config: Path | None = None, set_: SetArg = [],  # noqa: B006
-          seed: int = 0, resume: bool = False, device: str = "auto", quiet: bool = False) -> None:
+          iterations: int | None = None, keep_schedule: bool = False, config: Path | None = None,
+          set_: SetArg = [], seed: int = 0, resume: bool = False, device: str = "auto",  # noqa: B006
+          quiet: bool = False) -> None:
     """Reconstruct a relightable translucent object from an OLAT data set (SSS-3DGS backbone).
 
     Args:
@@ -26,22 +24,55 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
         split: training split.
         regime: capture regime: all | all-views-1-light | views=5%,lights=5% | views=5,lights=6 | images=10.
         preset: hyperparameter preset: diamond (Tab. 3, with multi-view losses) or sss3dgs (Tab. 4 original).
-        iterations: training steps (overrides the preset).
+        iterations: training steps; the preset's (and --config's) step-valued keys (densification
+            start, stop and interval, opacity reset, learning rate schedule, checkpoint and log intervals)
+            are scaled by iterations / the preset's iterations.
+        keep_schedule: with --iterations, keep the preset's step-valued keys as they are.
         config: JSON file of config keys (e.g. the best configuration written by `diamond-sss tune`).
         seed: seed of the regime selection, initialisation and every random draw.
         resume: continue from the newest checkpoint in --out.
         device: auto | cpu | cuda.
         quiet: no progress bar.
     """
+    from diamond_sss.training.overrides import scaled_run_schedule
     from diamond_sss.training.run import train_run
 
-    overrides = {"seed": seed, "device": device}
-    if iterations is not None:
+    console = Console(soft_wrap=True)
+    overrides: dict = {"seed": seed, "device": device}
+    if iterations is not None and keep_schedule:
         overrides["iterations"] = iterations
+    elif iterations is not None:
+        scaled, changes = scaled_run_schedule(preset, iterations, config_file=config, sets=set_)
+        overrides.update(scaled)
+        listed = ", ".join(f"{key} {old}->{new}" for key, (old, new) in changes.items())
+        console.print(f"schedule scaled to {iterations} steps (--keep-schedule keeps the preset's): "
+                      f"{listed or 'no change'}")
     result = train_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides,
                        config_file=config, sets=set_, resume=resume, show_progress=not quiet)
-    Console().print(f"trained {result.steps} steps in {result.seconds:.1f} s, {result.num_gaussians} Gaussians, "
-                    f"final loss {result.final_loss:.4f} -> {out / 'model.safetensors'}")
+    console.print(f"trained {result.steps} steps in {result.seconds:.1f} s, {result.num_gaussians} Gaussians, "
+                  f"final loss {result.final_loss:.4f} -> {out / 'model.safetensors'}")
+
+
+def config(preset: str = "diamond", json: bool = False) -> None:
+    """List every config key (for --set and --config) with its value under --preset and its meaning.
+
+    Args:
+        preset: hyperparameter preset whose values to show: diamond or sss3dgs.
+        json: print a JSON object of key -> value instead of a table.
+    """
+    from diamond_sss.training.overrides import describe_config
+
+    rows = describe_config(preset)
+    if json:
+        print(json_module.dumps({key: value for key, _, value, _ in rows}, indent=2))
+        return
+    table = Table(title=f"config keys, preset '{preset}' (change with --set key=value or --set flat_name=value)")
+    table.add_column("key", no_wrap=True)
+    table.add_column("value")
+    table.add_column("meaning [flat name]")
+    for key, flat, value, meaning in rows:
+        table.add_row(key, str(value), f"{meaning} [{flat}]")
+    Console(soft_wrap=True).print(table)
 
 
 def evaluate(run: Path, data: Path, split: str = "test", json: bool = False, lpips_weights: str | None = None,
@@ -61,7 +92,7 @@ def evaluate(run: Path, data: Path, split: str = "test", json: bool = False, lpi
         figures: rows of the GT | render | error figure (0: no figures).
         device: auto | cpu | cuda.
     """
-    from diamond_sss.training.run import evaluate_run
+    from diamond_sss.evaluation.run import evaluate_run
 
     summary = evaluate_run(run, data, split=split, lpips_weights=lpips_weights, max_images=max_images,
                            figures=figures, device=device, show_progress=not json)
@@ -87,16 +118,16 @@ def render(run: Path, out: Path, data: Path | None = None, split: str = "test", 
            orbit: int = 0, orbit_elevation_deg: float = 20.0, light: list[float] = [],  # noqa: B006
            light_intensity: float = 1.0, base_color: list[float] = [], roughness: float | None = None,  # noqa: B006
            metallic: float | None = None, subsurface: float | None = None, size: int | None = None,
-           device: str = "auto") -> None:
+           video: Path = Path("orbit.gif"), device: str = "auto") -> None:
     """Render a trained scene from data cameras or an orbit, under any point light(s), with material edits.
 
     Args:
         run: training run folder.
-        out: output folder for PNGs (and orbit.gif).
+        out: output folder for PNGs (and the orbit animation).
         data: data folder whose cameras (and first light) to use; default: the run's training data.
         split: split of --data whose cameras --views index.
         views: lattice view indices of --split to render (default: all).
-        orbit: render an orbit of N frames around the object instead (writes orbit.gif).
+        orbit: render an orbit of N frames around the object instead (and the --video animation).
         orbit_elevation_deg: elevation of the orbit.
         light: light position(s) x y z [x y z ...] (several lights are summed); default: each view's
             first light in the data.
@@ -106,15 +137,17 @@ def render(run: Path, out: Path, data: Path | None = None, split: str = "test", 
         metallic: override the metalness.
         subsurface: override the subsurfaceness s.
         size: image size of orbit frames (default: the data's width).
+        video: orbit animation, a name in --out or a path: .mp4 writes an MP4 (needs imageio-ffmpeg, the
+            `video` extra), .gif a GIF.
         device: auto | cpu | cuda.
     """
-    from diamond_sss.training.run import render_run
+    from diamond_sss.evaluation.run import render_run
 
     overrides = {k: v for k, v in (("base_color", base_color or None), ("roughness", roughness),
                                    ("metallic", metallic), ("subsurface", subsurface)) if v is not None}
     written = render_run(run, out, data=data, split=split, views=views, orbit=orbit,
                          orbit_elevation_deg=orbit_elevation_deg, lights=light, light_intensity=light_intensity,
-                         overrides=overrides, size=size, device=device)
+                         overrides=overrides, size=size, device=device, video=video)
     Console().print(f"wrote {len(written)} files to {out}")
 
 
@@ -126,20 +159,20 @@ def export(run: Path, ply: Path) -> None:
         ply: output .ply path (opens in common 3DGS viewers; colour from the base colour).
     """
     from diamond_sss.gaussians.ply import export_ply
-    from diamond_sss.training.trainer import load_scene
+    from diamond_sss.training.run_folder import load_scene
 
     scene, _ = load_scene(run)
     export_ply(scene.gaussians, ply)
     Console().print(f"{scene.gaussians.num_gaussians} Gaussians -> {ply}")
 
 
-def view(run: Path, port: int = 8080, host: str = "0.0.0.0", resolution: int = 256, device: str = "auto") -> None:
+def view(run: Path, port: int = 8080, host: str = "127.0.0.1", resolution: int = 256, device: str = "auto") -> None:
     """Open a trained scene in the web viewer (viser): orbit it, move the light, show maps, edit materials.
 
     Args:
         run: training run folder.
-        port: port of the web server (open http://localhost:PORT in a browser).
-        host: interface to listen on.
+        port: port of the web server (open the printed URL in a browser).
+        host: interface to listen on (default loopback only; 0.0.0.0 exposes the viewer to the network).
         resolution: initial image height of the rendered frames (pixels; a slider changes it).
         device: auto | cpu | cuda.
     """
@@ -165,8 +198,8 @@ def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5%,lights=
         seed: seed of every run.
         quiet: no progress bars.
     """
-    from diamond_sss.evaluation.ablation import ablation_table, run_ablation
-    from diamond_sss.training.config import parse_sets
+    from diamond_sss.experiments.ablation import ablation_table, run_ablation
+    from diamond_sss.training.overrides import parse_sets
 
     rows = run_ablation(data, out, variants=variants, regimes=regimes, iterations=iterations, overrides=parse_sets(set_),
                         seed=seed, show_progress=not quiet)

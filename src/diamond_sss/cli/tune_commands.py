@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
 
 import tyro
 from rich.console import Console
 
-SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
-                  tyro.conf.arg(name="set", help="fix a config key of all trials: --set key=value")]
+from diamond_sss.cli.options import SetArg
 
 
 def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: str | None = None,
@@ -53,45 +51,38 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
         import optuna  # noqa: F401
     except ImportError as exc:
         raise ValueError("diamond-sss tune needs Optuna: pip install 'diamond-sss[tune]'") from exc
-    from diamond_sss.training.config import parse_value
-    from diamond_sss.tuning.objective import Objective, ObjectiveSettings
-    from diamond_sss.tuning.report import write_report
+    from diamond_sss.training.config import canonical_key
+    from diamond_sss.training.overrides import make_config, parse_sets
+    from diamond_sss.tuning.objective import ObjectiveSettings
+    from diamond_sss.tuning.run import run_study
     from diamond_sss.tuning.space import SEARCH_SPACE
-    from diamond_sss.tuning.study import StudySettings, default_storage, open_study, run_worker
+    from diamond_sss.tuning.study import StudySettings, default_storage
     from diamond_sss.tuning.validation import load_tune_data
 
-    if enqueue_presets and trials < 2 and not report_only:
-        raise ValueError(f"--trials {trials}: a study starts with the two preset trials; ask for at least 2 "
-                         "or pass --no-enqueue-presets")
     overrides = {"seed": seed, "device": device}
-    for item in set_:
-        if "=" not in item:
-            raise ValueError(f"--set expects key=value, got '{item}'")
-        key, text = (part.strip() for part in item.split("=", 1))
-        if key in SEARCH_SPACE or key == "iterations":
-            reason = "searched" if key in SEARCH_SPACE else "set by --iterations"
+    searched = {canonical_key(key) for key in SEARCH_SPACE}
+    for key, value in parse_sets(set_).items():
+        if canonical_key(key) in searched or canonical_key(key) == "schedule.iterations":
+            reason = "searched" if canonical_key(key) in searched else "set by --iterations"
             raise ValueError(f"--set {key}: '{key}' is {reason}")
-        overrides[key] = parse_value(key, text)
+        overrides[key] = value
     objective_settings = ObjectiveSettings(preset=preset, overrides=overrides, iterations=iterations,
                                            report_every=report_every, schedule_scale=schedule_scale)
     tune_data = load_tune_data(data, split=split, regime=regime, seed=seed,
                                validation_images=validation_images,
-                               downscale=float(overrides.get("downscale", 1.0)))
+                               downscale=make_config(preset, overrides=overrides).runtime.downscale)
     study_settings = StudySettings(storage=storage or default_storage(out), study_name=study, seed=seed,
                                    worker=worker, pruner_startup_trials=pruner_startup_trials,
                                    pruner_warmup_steps=report_every + 1,
                                    heartbeat_interval=heartbeat_interval, enqueue_presets=enqueue_presets)
-    optuna_study = open_study(study_settings, objective_settings.fingerprint(tune_data))
+    result = run_study(tune_data, out, objective_settings, study_settings, trials=trials, timeout=timeout,
+                       report_only=report_only)
     console = Console(soft_wrap=True)
     if not report_only:
-        objective = Objective(tune_data, objective_settings, Path(out) / "trials")
-        ran = run_worker(optuna_study, objective, trials, timeout=timeout,
-                         poll_seconds=heartbeat_interval / 2)
-        console.print(f"worker {worker} ran trials {ran}")
-    paths = write_report(optuna_study, out)
-    best = optuna_study.best_trial
+        console.print(f"worker {worker} ran trials {result.ran}")
+    best = result.study.best_trial
     console.print(f"best: trial {best.number}, validation PSNR {best.value:.3f} dB")
-    for name, path in paths.items():
+    for name, path in result.paths.items():
         console.print(f"  {name}: {path}")
 
 

@@ -9,8 +9,8 @@ from diamond_sss.data.dataset import (
     SceneBounds,
     scene_bounds,
 )
-from diamond_sss.data.errors import DataError
 from diamond_sss.data.regimes import RegimeSelection, select_regime
+from diamond_sss.errors import DataError
 
 __all__ = [
     "Camera",

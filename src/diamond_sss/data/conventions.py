@@ -75,25 +75,29 @@ def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> Tensor:
     return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float32)
 
 
-def intrinsics_from_fov(fov_x: float, width: int, height: int, fov_y: float | None = None) -> Tensor:
+def intrinsics_from_fov(fov_x: float | None, width: int, height: int, fov_y: float | None = None) -> Tensor:
     """Pinhole ``K`` from the horizontal field of view (radians), NeRF-synthetic ``camera_angle_x``.
 
-    ``fx = W / (2 tan(fov_x / 2))``; square pixels (``fy = fx``) unless ``fov_y`` is given;
-    principal point at the image centre ``(W/2, H/2)``.
+    ``fx = W / (2 tan(fov_x / 2))``, ``fy = H / (2 tan(fov_y / 2))``; with one of them ``None`` the pixels are
+    square (``fy = fx`` or ``fx = fy``); principal point at the image centre ``(W/2, H/2)``.
     """
-    fx = 0.5 * width / math.tan(0.5 * fov_x)
-    fy = fx if fov_y is None else 0.5 * height / math.tan(0.5 * fov_y)
+    if fov_x is None and fov_y is None:
+        raise ValueError("intrinsics_from_fov needs fov_x or fov_y")
+    fy = None if fov_y is None else 0.5 * height / math.tan(0.5 * fov_y)
+    fx = fy if fov_x is None else 0.5 * width / math.tan(0.5 * fov_x)
+    fy = fx if fy is None else fy
     return intrinsics_matrix(fx, fy, 0.5 * width, 0.5 * height)
 
 
-def scale_intrinsics(K: Tensor, factor: float) -> Tensor:
-    """Intrinsics of an image resized by ``factor`` (``0.5`` halves both sides). ``[...,3,3]``.
+def scale_intrinsics(K: Tensor, factor: float, factor_y: float | None = None) -> Tensor:
+    """Intrinsics of an image resized by ``factor`` (``0.5`` halves both sides; ``factor_y``, when given,
+    scales the height). ``[...,3,3]``.
 
     With pixel centres at ``+0.5``, resizing maps continuous coordinates by a pure scale.
     """
     out = K.clone()
     out[..., 0, :] *= factor
-    out[..., 1, :] *= factor
+    out[..., 1, :] *= factor if factor_y is None else factor_y
     out[..., 2, :] = K[..., 2, :]
     return out
 

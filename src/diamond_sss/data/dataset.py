@@ -7,11 +7,11 @@ are comparable with training ones. Images load lazily into a bounded cache.
 
 from __future__ import annotations
 
-import warnings
+import logging
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,6 @@ from diamond_sss.data.conventions import (
     opengl_c2w_to_opencv_w2c,
     scale_intrinsics,
 )
-from diamond_sss.data.errors import DataError, data_error
 from diamond_sss.data.images import composite_background, load_rgba, resize_area
 from diamond_sss.data.transforms import (
     DeclaredCamera,
@@ -35,6 +34,10 @@ from diamond_sss.data.transforms import (
     parse_transforms,
     transforms_path,
 )
+from diamond_sss.errors import DataError, data_error
+from diamond_sss.utils.logs import warn_once
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -97,7 +100,6 @@ class SceneBounds:
 class _ImageCache:
     capacity: int
     entries: OrderedDict = field(default_factory=OrderedDict)
-    warned_empty: set = field(default_factory=set)
 
     def get(self, key: int) -> tuple[Tensor, Tensor] | None:
         if key in self.entries:
@@ -139,6 +141,7 @@ class OLATDataset:
         self.json_path = transforms_path(self.root, split)
         parsed = parse_transforms(self.json_path)
         records = parsed.records
+        self.excluded = parsed.excluded
         self.cameras, view_of_record = _deduplicate_cameras(parsed, self.downscale)
         self.lights, light_of_record = _deduplicate_lights(parsed, light_tolerance)
         self.observations = _observations(self.json_path, records, view_of_record, light_of_record)
@@ -222,10 +225,9 @@ class OLATDataset:
             camera = self.cameras[obs.view]
             rgb = resize_area(rgb, camera.height, camera.width)
             mask = resize_area(mask, camera.height, camera.width)
-            if float(mask.max()) < 0.5 / 255.0 and index not in self._cache.warned_empty:
-                self._cache.warned_empty.add(index)
-                warnings.warn(f"{obs.image_path}: the mask is empty (frame {obs.frame} of {self.json_path})",
-                              stacklevel=2)
+            if float(mask.max()) < 0.5 / 255.0:
+                warn_once(logger, "empty-mask", "%s: the mask is empty (frame %d of %s); further empty masks "
+                          "are logged at debug level only", obs.image_path, obs.frame, self.json_path)
             cached = (rgb, mask)
             self._cache.put(index, cached)
         rgb, mask = cached
@@ -298,13 +300,19 @@ class OLATDataset:
             "lattice_views": self.num_views,
             "lattice_lights": self.num_lights,
             "images": len(self.observations),
+            "excluded_images": len(self.excluded),
             "width": self.width,
             "height": self.height,
             "downscale": self.downscale,
-            "bounds": {"center": [round(float(x), 6) for x in bounds.center], "radius": round(bounds.radius, 6),
-                       "near": round(bounds.near, 6), "far": round(bounds.far, 6)},
+            "bounds": {"center": [_rounded(x) for x in bounds.center], "radius": _rounded(bounds.radius),
+                       "near": _rounded(bounds.near), "far": _rounded(bounds.far)},
             "geometry_maps": sum(self.has_geometry_maps(v) for v in range(self.num_views)),
         }
+
+
+def _rounded(value) -> float:
+    """``value`` to 6 decimals, with no negative zero."""
+    return round(float(value), 6) + 0.0
 
 
 _CACHED_PROPERTIES = {"presence"}
@@ -318,9 +326,15 @@ def seeded_epoch_indices(step: int, batch_size: int, count: int, seed: int) -> l
     out = []
     for k in range(batch_size):
         epoch, position = divmod(step * batch_size + k, count)
-        generator = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
-        out.append(int(torch.randperm(count, generator=generator)[position]))
+        out.append(_epoch_permutation(seed, epoch, count)[position])
     return out
+
+
+@lru_cache(maxsize=4)
+def _epoch_permutation(seed: int, epoch: int, count: int) -> tuple[int, ...]:
+    """The seeded order of epoch ``epoch`` (drawn once per epoch, not once per step)."""
+    generator = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+    return tuple(torch.randperm(count, generator=generator).tolist())
 
 
 def scene_bounds(viewmats: Tensor, Ks: Tensor, width: int, height: int) -> SceneBounds:
@@ -351,8 +365,10 @@ def scene_bounds(viewmats: Tensor, Ks: Tensor, width: int, height: int) -> Scene
     return SceneBounds(center=center.float(), radius=radius, near=near, far=far)
 
 
-def _camera_matrix(record: ImageRecord | DeclaredCamera, width: int, height: int,
+def _camera_matrix(record: ImageRecord | DeclaredCamera, width: int, height: int, size: tuple[int, int],
                    downscale: float) -> tuple[Tensor, Tensor, int, int]:
+    """Camera of intrinsics given in pixels of ``width x height``, for images of ``size`` over ``downscale``
+    (e.g. a 256 px image of a frame whose intrinsics are stated for 800 px)."""
     intr = record.intrinsics
     if intr.fx is not None:
         cx = intr.cx if intr.cx is not None else 0.5 * width
@@ -360,10 +376,10 @@ def _camera_matrix(record: ImageRecord | DeclaredCamera, width: int, height: int
         K = intrinsics_matrix(intr.fx, intr.fy, cx, cy)
     else:
         K = intrinsics_from_fov(intr.fov_x, width, height, intr.fov_y)
-    new_width = max(1, round(width / downscale))
-    new_height = max(1, round(height / downscale))
-    if new_width != width:
-        K = scale_intrinsics(K, new_width / width)
+    new_width = max(1, round(size[0] / downscale))
+    new_height = max(1, round(size[1] / downscale))
+    if (new_width, new_height) != (width, height):
+        K = scale_intrinsics(K, new_width / width, new_height / height)
     w2c = opengl_c2w_to_opencv_w2c(torch.from_numpy(record.c2w)).float()
     return w2c, K, new_width, new_height
 
@@ -373,14 +389,15 @@ def _deduplicate_cameras(parsed: ParsedTransforms, downscale: float) -> tuple[li
     cameras: list[Camera] = []
     keys: dict[tuple, int] = {}
     records = parsed.records
-    entries: list[tuple[ImageRecord | DeclaredCamera, int, int, int]] = [
-        (cam, cam.width or records[0].width, cam.height or records[0].height, -1) for cam in parsed.cameras
-    ] + [(record, record.width, record.height, record.frame) for record in records]
+    declared = [(cam.width or records[0].width, cam.height or records[0].height) for cam in parsed.cameras]
+    entries: list[tuple[ImageRecord | DeclaredCamera, int, int, tuple[int, int], int]] = [
+        (cam, *size, size, -1) for cam, size in zip(parsed.cameras, declared)
+    ] + [(record, record.width, record.height, record.file_size, record.frame) for record in records]
     view_of_entry = []
-    for entry, width, height, frame in entries:
+    for entry, width, height, size, frame in entries:
         key = (tuple(np.round(entry.c2w, 6).ravel().tolist()), entry.intrinsics)
         if key not in keys:
-            w2c, K, new_width, new_height = _camera_matrix(entry, width, height, downscale)
+            w2c, K, new_width, new_height = _camera_matrix(entry, width, height, size, downscale)
             keys[key] = len(cameras)
             cameras.append(Camera(w2c=w2c, K=K, width=new_width, height=new_height, frame=frame))
         view_of_entry.append(keys[key])
@@ -421,14 +438,14 @@ def _observations(json_path: Path, records: list[ImageRecord], view_of_record: l
     seen: dict[tuple[int, int], Path] = {}
     first_size: dict[int, tuple[int, int]] = {}
     for record, view, light in zip(records, view_of_record, light_of_record):
-        reference = first_size.setdefault(view, (record.width, record.height))
+        reference = first_size.setdefault(view, record.file_size)
         if record.file_size != reference:
             file_w, file_h = record.file_size
             raise data_error(json_path, f"image {record.image_path} is {file_w}x{file_h} but view {view} is "
                              f"{reference[0]}x{reference[1]}", frame=record.frame, key="w/h")
         if (view, light) in seen:
-            warnings.warn(f"{json_path}: frame {record.frame}: {record.image_path} repeats view {view} under light "
-                          f"{light} (already {seen[(view, light)]}); keeping the first", stacklevel=3)
+            logger.warning("%s: frame %d: %s repeats view %d under light %d (already %s); keeping the first",
+                           json_path, record.frame, record.image_path, view, light, seen[(view, light)])
             continue
         seen[(view, light)] = record.image_path
         observations.append(Observation(view=view, light=light, image_path=record.image_path,

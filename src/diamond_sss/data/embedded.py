@@ -5,7 +5,7 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-from diamond_sss.data.errors import DataError
+from diamond_sss.errors import DataError
 
 DEMO = "demo"
 FINETUNE_PREFIX = "finetune/"

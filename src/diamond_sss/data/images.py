@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diamond_sss.data.conventions import linear_to_srgb, srgb_to_linear
-from diamond_sss.data.errors import DataError
+from diamond_sss.errors import DataError
 from diamond_sss.utils.io import atomic_write
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

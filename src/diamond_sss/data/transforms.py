@@ -6,7 +6,9 @@
   ``pl_pos`` and optional ``pl_intensity`` (and ``mask_path``).
 
 Intrinsics come from ``camera_angle_x`` (+ optional ``camera_angle_y``) or ``fl_x, fl_y, cx, cy``, at the
-top level or per frame (per frame wins); the image size from ``w, h`` or from the image files. Optional
+top level or per frame (per frame wins), in pixels of ``w``/``width`` x ``h``/``height`` (default: the image
+file's size; the dataset scales them to the file's size). Images named in the object's ``exclude_list.txt``
+are skipped (the SSS-3DGS release's reader does the same). Optional
 per-view geometry maps: ``depth_path`` (float32 ``.npy`` camera z) and ``normal_path`` (float32 ``.npy``
 world-space unit normals). Nothing is written here and no pixel is decoded.
 """
@@ -21,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from diamond_sss.data.errors import DataError, data_error
 from diamond_sss.data.images import read_header
+from diamond_sss.errors import DataError, data_error
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 
@@ -96,11 +98,45 @@ class DeclaredLight:
 
 @dataclass(frozen=True)
 class ParsedTransforms:
-    """Every image of a transforms file, plus the lattice cameras and lights it declares up front."""
+    """Every image of a transforms file, plus the lattice cameras and lights it declares up front, and the
+    image entries skipped because the object's ``exclude_list.txt`` names them."""
 
     records: list[ImageRecord]
     cameras: list[DeclaredCamera]
     lights: list[DeclaredLight]
+    excluded: tuple[str, ...] = ()
+
+
+EXCLUDE_LIST = "exclude_list.txt"
+
+
+def read_exclude_list(root: Path) -> frozenset[str]:
+    """Image names of ``root/exclude_list.txt`` (one a line, with or without ``.png``; ``#`` comments).
+
+    The SSS-3DGS release lists there the images of an object its reader skips; no file: nothing skipped.
+    """
+    path = Path(root) / EXCLUDE_LIST
+    if not path.is_file():
+        return frozenset()
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        raise data_error(path, f"not a UTF-8 text file ({exc})") from exc
+    return frozenset(_image_name(line) for line in lines if line.strip() and not line.lstrip().startswith("#"))
+
+
+def _image_name(entry: str) -> str:
+    """``entry`` without surrounding spaces, a leading ``./`` and a ``.png`` suffix (``/`` separators)."""
+    name = entry.strip().replace("\\", "/")
+    name = name.removeprefix("./")
+    return name[:-4] if name.lower().endswith(".png") else name
+
+
+def is_excluded(entry: str, excluded: frozenset[str]) -> bool:
+    """Whether the image ``entry`` (a ``file_path(s)`` value) is named in the exclude list, as a relative
+    path or by its file name."""
+    name = _image_name(entry)
+    return name in excluded or name.rsplit("/", 1)[-1] in excluded
 
 
 def parse_transforms(path: Path) -> ParsedTransforms:
@@ -121,12 +157,16 @@ def parse_transforms(path: Path) -> ParsedTransforms:
     if not isinstance(frames, list) or not frames:
         raise data_error(path, "expected a non-empty list", key="frames")
     root = path.parent
+    excluded = read_exclude_list(root)
     records: list[ImageRecord] = []
+    skipped: list[str] = []
     for index, frame in enumerate(frames):
         if not isinstance(frame, dict):
             raise data_error(path, "expected a JSON object", frame=index)
-        records.extend(_parse_frame(path, root, meta, frame, index))
-    return ParsedTransforms(records, _declared_cameras(path, meta), _declared_lights(path, meta))
+        records.extend(_parse_frame(path, root, meta, frame, index, excluded, skipped))
+    if not records:
+        raise data_error(path, f"every image is named in {root / EXCLUDE_LIST}", key="frames")
+    return ParsedTransforms(records, _declared_cameras(path, meta), _declared_lights(path, meta), tuple(skipped))
 
 
 def _declared_cameras(path: Path, meta: dict) -> list[DeclaredCamera]:
@@ -142,10 +182,9 @@ def _declared_cameras(path: Path, meta: dict) -> list[DeclaredCamera]:
             intrinsics = _intrinsics(path, meta, entry, index)
         except DataError as exc:
             raise DataError(str(exc).replace(f"frame {index}", f"cameras[{index}]")) from exc
-        width = entry.get("w", meta.get("w"))
-        height = entry.get("h", meta.get("h"))
-        cameras.append(DeclaredCamera(index, c2w, intrinsics, None if width is None else int(width),
-                                      None if height is None else int(height)))
+        width = _size(path, meta, entry, index, ("w", "width"), 0)
+        height = _size(path, meta, entry, index, ("h", "height"), 0)
+        cameras.append(DeclaredCamera(index, c2w, intrinsics, width or None, height or None))
     return cameras
 
 
@@ -163,7 +202,8 @@ def _declared_lights(path: Path, meta: dict) -> list[DeclaredLight]:
     return lights
 
 
-def _parse_frame(path: Path, root: Path, meta: dict, frame: dict, index: int) -> list[ImageRecord]:
+def _parse_frame(path: Path, root: Path, meta: dict, frame: dict, index: int, excluded: frozenset[str],
+                 skipped: list[str]) -> list[ImageRecord]:
     c2w = _matrix(path, frame, index)
     intrinsics = _intrinsics(path, meta, frame, index)
     depth_path = _optional_file(path, root, frame, index, "depth_path")
@@ -197,10 +237,13 @@ def _parse_frame(path: Path, root: Path, meta: dict, frame: dict, index: int) ->
     records = []
     for k, (file_entry, mask_entry, light_pos, light_rgb) in enumerate(items):
         key = "file_path" if "file_path" in frame else f"file_paths[{k}]"
+        if isinstance(file_entry, str) and is_excluded(file_entry, excluded):
+            skipped.append(file_entry)
+            continue
         image_path = _resolve_image(path, root, file_entry, index, key)
         header = read_header(image_path)
-        width = _int_or(meta, frame, "w", header.width)
-        height = _int_or(meta, frame, "h", header.height)
+        width = _size(path, meta, frame, index, ("w", "width"), header.width)
+        height = _size(path, meta, frame, index, ("h", "height"), header.height)
         mask_path = _resolve_mask(path, root, image_path, mask_entry, index, key, header.channels)
         records.append(ImageRecord(
             frame=index, c2w=c2w, intrinsics=intrinsics, width=width, height=height, image_path=image_path,
@@ -283,9 +326,18 @@ def _intrinsics(path: Path, meta: dict, frame: dict, index: int) -> Intrinsics:
     return Intrinsics(fx=fx, fy=fy if fy is not None else fx, cx=cx, cy=cy, fov_x=fov_x, fov_y=fov_y)
 
 
-def _int_or(meta: dict, frame: dict, key: str, default: int) -> int:
-    value = frame.get(key, meta.get(key, default))
-    return int(value)
+def _size(path: Path, meta: dict, frame: dict, index: int, keys: tuple[str, str], default: int) -> int:
+    """Image side in pixels the intrinsics are stated for: ``w``/``width`` (``h``/``height``) of the frame,
+    else of the top level, else the image file's."""
+    for source, where in ((frame, index), (meta, None)):
+        for key in keys:
+            if key in source:
+                value = source[key]
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0 or value % 1:
+                    raise data_error(path, f"expected a positive whole number of pixels, got {value!r}",
+                                     frame=where, key=key)
+                return int(value)
+    return default
 
 
 def _resolve_image(path: Path, root: Path, entry: Any, index: int, key: str) -> Path:

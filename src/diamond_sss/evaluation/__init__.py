@@ -1,1 +1,1 @@
-"""Metrics, figures and reports."""
+"""Metrics, figures and reports; evaluating and rendering trained run folders (:mod:`.run`)."""

@@ -15,7 +15,7 @@ from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.metrics import ImageMetrics, image_metrics, mean_metrics
 from diamond_sss.losses.lpips import load_lpips
-from diamond_sss.rendering.relightable import RelightableScene, SceneRender
+from diamond_sss.scene.model import RelightableScene, SceneRender
 from diamond_sss.utils.io import atomic_write_json, atomic_write_text
 
 DECOMPOSITION = ("base_color", "normal", "roughness", "metallic", "subsurface", "diffuse", "specular",

@@ -9,7 +9,6 @@ from diamond_sss.gaussians.init import (
     VoxelHull,
     carve_visual_hull,
     initial_points,
-    load_points3d_ply,
     random_points_in_sphere,
     visual_hull_points,
 )
@@ -21,7 +20,7 @@ from diamond_sss.gaussians.model import (
     nearest_neighbor_scales,
     outward_normals,
 )
-from diamond_sss.gaussians.ply import base_color_to_sh_dc, export_ply, import_ply
+from diamond_sss.gaussians.ply import base_color_to_sh_dc, export_ply, import_ply, load_points3d_ply
 
 __all__ = [
     "NUM_VISIBILITY_SH",

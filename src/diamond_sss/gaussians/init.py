@@ -12,13 +12,12 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.nn.functional as F
-from plyfile import PlyData
 from torch import Tensor
 
-from diamond_sss.data.conventions import project_points, sample_bilinear, srgb_to_linear
+from diamond_sss.data.conventions import project_points, sample_bilinear
+from diamond_sss.gaussians.ply import load_points3d_ply
 from diamond_sss.utils import rng
 
 logger = logging.getLogger(__name__)
@@ -39,50 +38,6 @@ class InitialPoints:
     colors: Tensor | None
     normals: Tensor | None
     source: str
-
-
-def load_points3d_ply(path: str | Path) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """Read a ``points3d.ply``: ``points [N,3]``, ``colors [N,3] | None``, ``normals [N,3] | None``.
-
-    Needs a ``vertex`` element with ``x, y, z``. Colours (``red, green, blue``: 8-bit, 16-bit or
-    float in ``[0,1]``) are sRGB on disk and returned linear (float32, ``[0,1]``). Normals
-    (``nx, ny, nz``) are returned only when present and not all zero (many writers fill them with 0).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"point cloud {path} does not exist")
-    ply = PlyData.read(str(path))
-    if "vertex" not in ply:
-        raise ValueError(f"point cloud {path} has no 'vertex' element")
-    vertex = ply["vertex"]
-    names = {prop.name for prop in vertex.properties}
-    for name in ("x", "y", "z"):
-        if name not in names:
-            raise ValueError(f"point cloud {path}: vertex element has no property {name!r}")
-
-    def stack(keys: tuple[str, str, str]) -> np.ndarray:
-        return np.stack([np.asarray(vertex[k]) for k in keys], axis=-1)
-
-    points = torch.from_numpy(stack(("x", "y", "z")).astype(np.float32))
-    colors = None
-    color_keys = ("red", "green", "blue")
-    present = [k for k in color_keys if k in names]
-    if present and len(present) < 3:
-        missing = sorted(set(color_keys) - set(present))
-        raise ValueError(f"point cloud {path}: vertex element has {present} but no property {missing[0]!r}")
-    if present:
-        raw = stack(color_keys)
-        if np.issubdtype(raw.dtype, np.integer):
-            raw = raw.astype(np.float32) / float(np.iinfo(raw.dtype).max)
-        colors = srgb_to_linear(torch.from_numpy(raw.astype(np.float32)))
-    normals = None
-    if all(k in names for k in ("nx", "ny", "nz")):
-        raw_normals = torch.from_numpy(stack(("nx", "ny", "nz")).astype(np.float32))
-        if raw_normals.abs().amax() > 0:
-            normals = raw_normals
-    if not torch.isfinite(points).all():
-        raise ValueError(f"point cloud {path} has non-finite positions")
-    return points, colors, normals
 
 
 def random_points_in_sphere(

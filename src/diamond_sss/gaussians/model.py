@@ -26,6 +26,7 @@ There is no colour SH: all colour comes from shading.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -40,18 +41,39 @@ SH_C0 = 0.28209479177387814
 VISIBILITY_SH_DEGREE = 3
 NUM_VISIBILITY_SH = (VISIBILITY_SH_DEGREE + 1) ** 2
 
-PARAM_SHAPES: dict[str, tuple[int, ...]] = {
-    "means": (3,),
-    "scales": (3,),
-    "quats": (4,),
-    "opacities": (),
-    "normals": (3,),
-    "base_color": (3,),
-    "roughness": (1,),
-    "metallic": (1,),
-    "subsurface": (1,),
-    "visibility_sh": (NUM_VISIBILITY_SH,),
-}
+
+@dataclass(frozen=True)
+class GaussianParam:
+    """One raw (pre-activation) per-Gaussian parameter: its per-Gaussian trailing ``shape``, its property names
+    in a PLY file and the field of ``TrainConfig.lr`` holding its learning rate (``None``: the positions' own
+    schedule)."""
+
+    name: str
+    shape: tuple[int, ...]
+    ply: tuple[str, ...]
+    lr: str | None
+
+
+def _numbered(prefix: str, count: int) -> tuple[str, ...]:
+    return tuple(f"{prefix}_{i}" for i in range(count))
+
+
+GAUSSIAN_PARAMS: tuple[GaussianParam, ...] = (
+    GaussianParam("means", (3,), ("x", "y", "z"), None),
+    GaussianParam("scales", (3,), _numbered("scale", 3), "scaling"),
+    GaussianParam("quats", (4,), _numbered("rot", 4), "rotation"),
+    GaussianParam("opacities", (), ("opacity",), "opacity"),
+    GaussianParam("normals", (3,), ("nx", "ny", "nz"), "normal"),
+    GaussianParam("base_color", (3,), _numbered("base_color", 3), "base_color"),
+    GaussianParam("roughness", (1,), ("roughness",), "roughness"),
+    GaussianParam("metallic", (1,), ("metallic",), "metallic"),
+    GaussianParam("subsurface", (1,), ("subsurface",), "subsurfacedness"),
+    GaussianParam("visibility_sh", (NUM_VISIBILITY_SH,), _numbered("vis_sh", NUM_VISIBILITY_SH), "visibility"),
+)
+"""The raw parameters of a Gaussian, in storage order: the one list the shapes, the PLY fields and the
+learning-rate keys are read from."""
+
+PARAM_SHAPES: dict[str, tuple[int, ...]] = {param.name: param.shape for param in GAUSSIAN_PARAMS}
 """Per-Gaussian trailing shape of every raw parameter, in storage order."""
 
 _LOGIT_EPS = 1e-6

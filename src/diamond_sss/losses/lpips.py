@@ -21,14 +21,19 @@ variable ``DIAMOND_SSS_LPIPS_WEIGHTS``) with exactly these keys:
 
 from __future__ import annotations
 
+import logging
 import os
 import re
-import warnings
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from diamond_sss.utils.io import load_safetensors
+from diamond_sss.utils.logs import warn_once
+
+logger = logging.getLogger(__name__)
 
 WEIGHTS_ENV_VAR = "DIAMOND_SSS_LPIPS_WEIGHTS"
 
@@ -61,8 +66,6 @@ LIN_CHANNELS: tuple[int, ...] = (64, 128, 256, 512, 512)
 _SHIFT = (-0.030, -0.088, -0.188)
 _SCALE = (0.458, 0.448, 0.450)
 _NORM_EPS = 1e-10
-
-_warned_unavailable = False
 
 
 def expected_shapes() -> dict[str, tuple[int, ...]]:
@@ -157,9 +160,7 @@ def convert_lpips_state_dict(
 
 
 def _read_weights(path: Path) -> dict[str, Tensor]:
-    from safetensors.torch import load_file
-
-    state = load_file(str(path))
+    state = load_safetensors(path)
     shapes = expected_shapes()
     for key in state:
         if key not in shapes:
@@ -179,28 +180,22 @@ def _read_weights(path: Path) -> dict[str, Tensor]:
     return state
 
 
-def _warn_unavailable(reason: str) -> None:
-    global _warned_unavailable
-    if not _warned_unavailable:
-        _warned_unavailable = True
-        warnings.warn(f"LPIPS is disabled: {reason}", RuntimeWarning, stacklevel=3)
-
-
 def load_lpips(path: str | os.PathLike[str] | None = None) -> LPIPS | None:
     """LPIPS network with weights from ``path`` (or ``$DIAMOND_SSS_LPIPS_WEIGHTS``), or None.
 
-    Returns None, with a single ``RuntimeWarning`` per process, when no path is given or the file
+    Returns None, with one warning line per process, when no path is given or the file
     does not exist; never downloads. A file with missing, unexpected or misshaped keys raises
     ``ValueError`` naming the file and the key.
     """
     if path is None:
         path = os.environ.get(WEIGHTS_ENV_VAR) or None
     if path is None:
-        _warn_unavailable(f"no weights file given and ${WEIGHTS_ENV_VAR} is not set")
+        warn_once(logger, "lpips", "LPIPS is disabled: no weights file given and $%s is not set",
+                  WEIGHTS_ENV_VAR)
         return None
     weights_path = Path(path)
     if not weights_path.is_file():
-        _warn_unavailable(f"weights file {weights_path} does not exist")
+        warn_once(logger, "lpips", "LPIPS is disabled: weights file %s does not exist", weights_path)
         return None
     model = LPIPS()
     model.load_state_dict(_read_weights(weights_path))

@@ -55,13 +55,15 @@ def dssim_per_image(pred: Tensor, target: Tensor) -> Tensor:
 
 
 def weighted_mean(values: Tensor, weights: Tensor | None) -> Tensor:
-    """``sum_b w_b v_b / sum_b w_b`` (plain mean when ``weights`` is None). ``[B] -> []``."""
+    """``sum_b w_b v_b / sum_b w_b`` (plain mean when ``weights`` is None). ``[B] -> []``.
+
+    Weights must be non-negative: they are checked where they are made (``synthetic_weight`` in the
+    training config), not here, so that a training step never reads a value back from the device.
+    """
     if weights is None:
         return values.mean()
     _check_weights(weights, values.shape[0])
     weights = weights.to(values)
-    if bool((weights < 0).any()):
-        raise ValueError("per-image weights must be non-negative")
     return (weights * values).sum() / weights.sum().clamp_min(torch.finfo(values.dtype).tiny)
 
 

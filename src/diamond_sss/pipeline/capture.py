@@ -9,22 +9,12 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 from diamond_sss.data.conventions import opencv_w2c_to_opengl_c2w
 from diamond_sss.data.dataset import OLATDataset
+from diamond_sss.diffusion.common.manifest import GeneratedImage
 from diamond_sss.utils.io import atomic_write_json
-
-
-@dataclass(frozen=True)
-class GeneratedImage:
-    """One image on the lattice: view and light indices, the image (RGBA or RGB) and an optional mask."""
-
-    view: int
-    light: int
-    image: Path
-    mask: Path | None = None
 
 
 def lattice_header(lattice: OLATDataset) -> dict:

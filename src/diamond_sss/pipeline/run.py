@@ -34,36 +34,16 @@ import torch
 from diamond_sss.data.dataset import OLATDataset, directions_from
 from diamond_sss.data.images import load_rgba
 from diamond_sss.data.regimes import farthest_point_order, select_regime
+from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, read_image_manifest
 from diamond_sss.evaluation.metrics import mask_iou
+from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
-from diamond_sss.training.config import make_config
-from diamond_sss.training.run import evaluate_run, train_run
-from diamond_sss.training.trainer import ImageSource, load_scene
+from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
+from diamond_sss.training.overrides import make_config
+from diamond_sss.training.run import train_run
+from diamond_sss.training.run_folder import load_scene
+from diamond_sss.training.trainer import ImageSource
 from diamond_sss.utils.io import atomic_write_json, sha256_file, sha256_json
-
-AUGMENTS = ("nvs", "relight")
-
-
-@dataclass
-class PipelineConfig:
-    """Settings of :func:`run_pipeline` besides the reconstruction's own configuration."""
-
-    augment: tuple[str, ...] = AUGMENTS
-    prelim_iterations: int | None = None
-    prelim_run: str | None = None
-    nvs_views: int = 12
-    relight_lights: int = 8
-    nvs_model: str | None = None
-    relight_model: str | None = None
-    nvs_steps: int = 1
-    relight_steps: int = 1
-    relight_samples: int = 8
-    nvs_guidance: float = 1.0
-    min_silhouette_iou: float = 0.5
-    min_mask_fraction: float = 0.002
-    min_real_share: float = 0.5
-    cache_dir: str | None = None
-    device: str = "cpu"
 
 
 @dataclass
@@ -221,7 +201,7 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     out.mkdir(parents=True, exist_ok=True)
     overrides = {**(overrides or {}), "seed": seed}
     train_cfg = make_config(preset, overrides=overrides)
-    real = OLATDataset(data, split, downscale=train_cfg.downscale)
+    real = OLATDataset(data, split, downscale=train_cfg.runtime.downscale)
     selection = select_regime(real, regime, seed)
     model_hashes = {}
     if "nvs" in cfg.augment:
@@ -317,7 +297,7 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
                     nearest.setdefault(sources[int(torch.argmax(similarity))], []).append(target)
                 for reference, group in nearest.items():
                     generate_novel_views(data, nvs_dir / f"l{light:03d}_v{reference:03d}", reference, light,
-                                         ",".join(str(v) for v in group), split=split, model_dir=cfg.nvs_model,
+                                         group, split=split, model_dir=cfg.nvs_model,
                                          steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=seed,
                                          cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
                                          device=cfg.device, geometry=geometry)
@@ -325,12 +305,8 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
             return {"targets": len(targets), "calls": calls}
 
         stage("nvs", nvs_stage)
-        for manifest_path in sorted(nvs_dir.glob("*/manifest.json")):
-            for entry in json.loads(manifest_path.read_text()):
-                item = GeneratedImage(entry["view"], entry["light"], manifest_path.parent / entry["image"],
-                                      manifest_path.parent / entry["mask"])
-                if keep(item):
-                    generated.append(item)
+        for manifest_path in sorted(nvs_dir.glob(f"*/{MANIFEST_NAME}")):
+            generated += [item for item in read_image_manifest(manifest_path) if keep(item)]
 
     relight_dir = out / "relight"
     if "relight" in cfg.augment:
@@ -365,12 +341,7 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
             return {"views": len(lights_of_view), "images": len(results), "sources_json": combined_json.name}
 
         stage("relight", relight_stage)
-        manifest_path = relight_dir / "out" / "manifest.json"
-        for entry in json.loads(manifest_path.read_text()):
-            item = GeneratedImage(entry["view"], entry["light"], manifest_path.parent / entry["image"],
-                                  manifest_path.parent / entry["mask"])
-            if keep(item):
-                generated.append(item)
+        generated += [item for item in read_image_manifest(relight_dir / "out" / MANIFEST_NAME) if keep(item)]
 
     extra = []
     num_real = len(selection.observations)
@@ -378,8 +349,8 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     if generated:
         write_capture(out / "synthetic", "train", real, generated)
         extra = [ImageSource(real.subset(selection.observations), 1.0)] * copies + [
-            ImageSource(OLATDataset(out / "synthetic", "train", downscale=train_cfg.downscale),
-                        train_cfg.synthetic_weight)]
+            ImageSource(OLATDataset(out / "synthetic", "train", downscale=train_cfg.runtime.downscale),
+                        train_cfg.losses.synthetic_weight)]
     final_dir = out / "final"
     counts = {"real_images": num_real, "synthetic_images": len(generated), "dropped": dropped,
               "real_share": round(num_real / (num_real + len(generated)), 4),

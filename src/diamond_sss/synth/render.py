@@ -16,6 +16,7 @@ foreground linear RGB values over a few front-lit probe renders of training view
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import math
 import tempfile
@@ -28,6 +29,7 @@ import numpy as np
 import torch
 
 from diamond_sss.data.conventions import opengl_c2w_to_opencv_w2c
+from diamond_sss.data.errors import DataError
 from diamond_sss.synth.materials import TranslucentMaterial, get_material
 from diamond_sss.synth.scene import LightStage, LightStageConfig, build_light_stage
 from diamond_sss.synth.shapes import TriangleMesh, build_shape
@@ -78,10 +80,13 @@ def opencv_w2c(c2w_opengl: np.ndarray) -> np.ndarray:
     return opengl_c2w_to_opencv_w2c(torch.from_numpy(np.asarray(c2w_opengl, dtype=np.float64))).numpy()
 
 
-def image_seed(object_seed: int, split: str, view: int, light: int) -> int:
-    """Mitsuba sampler seed (uint32) of image ``(view, light)`` of ``split``, derived from the object seed."""
+def image_seed(object_seed: int, split: str, view: int, light: int, noise_seed: int = 0) -> int:
+    """Mitsuba sampler seed (uint32) of image ``(view, light)`` of ``split``, derived from the object seed.
+
+    A non-zero ``noise_seed`` gives the same image with independent Monte Carlo noise.
+    """
     split_id = {"train": 0, "test": 1, "probe": 2, "geometry": 3}[split]
-    sequence = np.random.SeedSequence([object_seed, split_id, view, light])
+    sequence = np.random.SeedSequence([object_seed, split_id, view, light] + ([noise_seed] if noise_seed else []))
     return int(sequence.generate_state(1, dtype=np.uint32)[0])
 
 
@@ -281,13 +286,37 @@ class SynthConfig:
     subset: str | None = None
     seed: int = 0
     mesh_resolution: int = 64
+    noise_seed: int = 0
+    train: bool = True
+
+
+def noise_reference_config(data: Path, out: Path, noise_seed: int = 1) -> SynthConfig:
+    """The test split of the capture in ``data`` (read from its ``meta.json``) with independent noise.
+
+    Same object, rig, exposure and sample count; only the samplers' seeds change. Rendered into ``out``.
+    """
+    path = Path(data) / "meta.json"
+    if not path.is_file():
+        raise DataError(f"{path} is missing: only a capture made by `diamond-sss synth` can be rendered again")
+    try:
+        meta = json.loads(path.read_text())
+        stage = dict(meta["stage"])
+        stage["camera_band"], stage["light_band"] = tuple(stage["camera_band"]), tuple(stage["light_band"])
+        return SynthConfig(shape=meta["shape"]["name"], material=meta["material"]["name"], out=Path(out),
+                           stage=LightStageConfig(**stage), size=int(meta["size"][0]), spp=int(meta["spp"]),
+                           seed=int(meta["seed"]), mesh_resolution=int(meta["shape"]["mesh_resolution"]),
+                           noise_seed=noise_seed, train=False)
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise DataError(f"{path}: not a `diamond-sss synth` meta file ({type(exc).__name__}: {exc})") from exc
 
 
 def plan_pairs(config: SynthConfig) -> dict[str, list[tuple[int, int]]]:
     """``(view, light)`` pairs rendered per split: the full (or subset) training lattice and the full
     test lattice (novel views x novel lights; empty when either count is 0)."""
     st = config.stage
-    if config.subset:
+    if not config.train:
+        train = []
+    elif config.subset:
         selected = parse_subset(config.subset, st.views, st.lights)
         train = sorted({pair for pairs in selected.values() for pair in pairs})
     else:
@@ -328,6 +357,7 @@ def synthesize(config: SynthConfig, on_image: Callable[[], None] | None = None) 
         },
         "material": asdict(material),
         "seed": config.seed,
+        "noise_seed": config.noise_seed,
         "spp": config.spp,
         "geometry_spp": settings.geometry_spp,
         "max_depth": settings.max_depth,
@@ -378,7 +408,8 @@ def _render_split(
             write_npy(out / frame.depth_path, depth)
             write_npy(out / frame.normal_path, normal)
         for light in sorted(l for v, l in pairs if v == view):
-            image = renderer.render(c2ws[view], lights[light], image_seed(config.seed, split, view, light))
+            seed = image_seed(config.seed, split, view, light, config.noise_seed)
+            image = renderer.render(c2ws[view], lights[light], seed)
             image[..., 3] = coverage
             rel = f"{split}/v{view:03d}_l{light:03d}.png"
             write_png(out / rel, encode_rgba8(image, exposure))

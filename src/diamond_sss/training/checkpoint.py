@@ -1,32 +1,65 @@
-"""Atomic training checkpoints: scene tensors, optimiser states and densification state (safetensors + JSON).
+"""Atomic, resumable checkpoints in ``step_<N>`` folders (``N`` zero-padded to 8 digits; older runs with
+7-digit names are still found and ordered by their number).
 
-Layout of ``<run>/checkpoints``::
+Scene trainer (:func:`save_checkpoint`), layout of ``<run>/checkpoints``::
 
-    step_000500/scene.safetensors      raw Gaussian parameters, MLP weights, log light scale
-    step_000500/optim.safetensors      Adam moments of every optimiser, keyed ``<optimizer>/<slot>``
-    step_000500/strategy.safetensors   densification accumulators (when present)
-    step_000500/state.json             step, optimiser hyperparameters, strategy scalars
-    latest.json                        {"step": 500, "dir": "step_000500"}
+    step_00000500/scene.safetensors      raw Gaussian parameters, MLP weights, log light scale
+    step_00000500/optim.safetensors      Adam moments of every optimiser, keyed ``<optimizer>/<slot>``
+    step_00000500/strategy.safetensors   densification accumulators (when present)
+    step_00000500/state.json             step, optimiser hyperparameters, strategy scalars
+    latest.json                          {"step": 500, "dir": "step_00000500"}
 
-A checkpoint folder is written under a temporary name and renamed into place, then ``latest.json`` is
-replaced atomically, so a kill at any moment leaves the previous checkpoint usable.
+Diffusion fine-tunes (:func:`save_accelerate_checkpoint`): ``accelerator.save_state`` plus ``extra.json``
+in ``<root>/step_<N>``.
+
+A checkpoint folder is written under a temporary name and renamed into place (then ``latest.json`` is
+replaced atomically), so a kill at any moment leaves the previous checkpoint usable.
 """
 
 from __future__ import annotations
 
-import json
+import logging
 import os
+import re
 import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
+from diamond_sss.errors import DamagedFileError, DataError
+from diamond_sss.utils.io import (
+    atomic_save_safetensors,
+    atomic_write_json,
+    default_mode,
+    load_safetensors,
+    read_json,
+)
+
+logger = logging.getLogger(__name__)
+
+if TYPE_CHECKING:
+    from accelerate import Accelerator
 
 KEEP_CHECKPOINTS = 2
+_STEP_DIR = re.compile(r"^step_(\d+)$")
+
+
+def step_folder_name(step: int) -> str:
+    """Name of the checkpoint folder of ``step`` (``step_00000500``)."""
+    return f"step_{step:08d}"
+
+
+def _checkpoints(root: Path, marker: str | None = None) -> list[Path]:
+    """``step_<N>`` folders under ``root`` (holding ``marker`` when given), oldest first by ``N`` (any zero
+    padding)."""
+    if not root.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in root.iterdir() if p.is_dir() and (m := _STEP_DIR.match(p.name))]
+    return [p for _, p in sorted(found) if marker is None or (p / marker).is_file()]
 
 
 @dataclass
@@ -74,8 +107,9 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
     """Write checkpoint ``step`` atomically and keep the newest :data:`KEEP_CHECKPOINTS`."""
     root = Path(run_dir) / "checkpoints"
     root.mkdir(parents=True, exist_ok=True)
-    name = f"step_{step:07d}"
+    name = step_folder_name(step)
     tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=root))
+    os.chmod(tmp, default_mode(directory=True))
     try:
         atomic_save_safetensors(tmp / "scene.safetensors", scene_tensors)
         optim_tensors: dict[str, Tensor] = {}
@@ -99,27 +133,108 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
         if tmp.exists():
             shutil.rmtree(tmp)
     atomic_write_json(root / "latest.json", {"step": step, "dir": name})
-    for old in sorted(p for p in root.glob("step_*") if p.is_dir())[:-KEEP_CHECKPOINTS]:
+    for old in _checkpoints(root, "state.json")[:-KEEP_CHECKPOINTS]:
         shutil.rmtree(old)
     return final
 
 
-def latest_checkpoint(run_dir: Path) -> Path | None:
-    """Folder of the newest complete checkpoint, or None."""
-    pointer = Path(run_dir) / "checkpoints" / "latest.json"
-    if not pointer.is_file():
-        return None
-    folder = pointer.parent / json.loads(pointer.read_text())["dir"]
-    return folder if (folder / "state.json").is_file() else None
+def checkpoint_folders(run_dir: Path) -> list[Path]:
+    """Checkpoint folders of a run, newest first (the one ``latest.json`` names first when it reads)."""
+    root = Path(run_dir) / "checkpoints"
+    folders = _checkpoints(root)[::-1]
+    pointer = root / "latest.json"
+    if pointer.is_file():
+        try:
+            named = root / str(read_json(pointer)["dir"])
+        except DataError as exc:
+            logger.warning("%s; looking for checkpoint folders instead", exc)
+        except (KeyError, TypeError) as exc:
+            logger.warning("%s: no checkpoint folder named (%r); looking for checkpoint folders instead", pointer,
+                           exc)
+        else:
+            folders.sort(key=lambda folder: folder != named)
+    return folders
+
+
+def resume_checkpoint(run_dir: Path) -> tuple[Path, Checkpoint] | None:
+    """The newest checkpoint that loads, with its folder; None when there is none.
+
+    A damaged newer checkpoint is skipped with a warning naming the bad file and the one resumed from.
+    Raises :class:`DamagedFileError` when every checkpoint is damaged.
+    """
+    damaged: list[str] = []
+    for folder in checkpoint_folders(run_dir):
+        try:
+            loaded = load_checkpoint(folder)
+        except DataError as exc:
+            logger.warning("checkpoint %s is damaged: %s", folder.name, exc)
+            damaged.append(str(exc))
+            continue
+        if damaged:
+            logger.warning("resuming from %s, the newest intact checkpoint", folder)
+        return folder, loaded
+    if damaged:
+        raise DamagedFileError(f"{Path(run_dir) / 'checkpoints'}: no intact checkpoint ({'; '.join(damaged)})")
+    return None
 
 
 def load_checkpoint(folder: Path) -> Checkpoint:
-    """Read a checkpoint folder written by :func:`save_checkpoint`."""
-    meta = json.loads((folder / "state.json").read_text())
+    """Read a checkpoint folder written by :func:`save_checkpoint`; damaged files raise naming the file."""
+    state_path = folder / "state.json"
+    meta = read_json(state_path)
+    try:
+        step, optim_meta = int(meta["step"]), meta["optimizers"]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DamagedFileError(f"{state_path}: expected 'step' and 'optimizers' ({exc!r})") from exc
     optim_tensors = load_safetensors(folder / "optim.safetensors")
-    optimizers = {name: optimizer_from_tensors(name, optim_tensors, m) for name, m in meta["optimizers"].items()}
+    optimizers = {name: optimizer_from_tensors(name, optim_tensors, m) for name, m in optim_meta.items()}
     strategy = dict(meta.get("strategy", {}))
     if (folder / "strategy.safetensors").is_file():
         strategy.update(load_safetensors(folder / "strategy.safetensors"))
-    return Checkpoint(step=int(meta["step"]), scene=load_safetensors(folder / "scene.safetensors"),
+    return Checkpoint(step=step, scene=load_safetensors(folder / "scene.safetensors"),
                       optimizers=optimizers, strategy=strategy, extra=meta.get("extra", {}))
+
+
+def save_accelerate_checkpoint(
+    accelerator: Accelerator, root: str | os.PathLike, step: int, extra: dict | None = None, keep: int = 2
+) -> Path | None:
+    """Save models, optimizers, schedulers, RNG states and registered objects as ``root/step_<step>``.
+
+    ``accelerator.save_state`` writes into a temporary folder that is renamed into place once complete,
+    then only the ``keep`` newest checkpoints are kept. ``extra`` (JSON) is stored as ``extra.json``.
+    Returns the folder on the main process, ``None`` elsewhere.
+    """
+    accelerator.wait_for_everyone()
+    if not accelerator.is_main_process:
+        return None
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    final = root / step_folder_name(step)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=root))
+    try:
+        accelerator.save_state(str(tmp), safe_serialization=True)
+        atomic_write_json(tmp / "extra.json", {"step": step, **(extra or {})})
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    for old in _checkpoints(root, "extra.json")[:-keep] if keep > 0 else []:
+        shutil.rmtree(old)
+    return final
+
+
+def latest_accelerate_checkpoint(root: str | os.PathLike) -> Path | None:
+    """Newest complete ``step_<N>`` folder under ``root`` (temporary folders are ignored)."""
+    found = _checkpoints(Path(root), "extra.json")
+    return found[-1] if found else None
+
+
+def load_accelerate_checkpoint(accelerator: Accelerator, folder: str | os.PathLike) -> dict:
+    """Restore everything ``save_accelerate_checkpoint`` saved; returns the ``extra.json`` content (with ``step``)."""
+    folder = Path(folder)
+    if not (folder / "extra.json").is_file():
+        raise FileNotFoundError(f"{folder} is not a complete checkpoint (no extra.json)")
+    accelerator.load_state(str(folder))
+    return read_json(folder / "extra.json")

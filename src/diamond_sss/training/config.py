@@ -1,280 +1,310 @@
-"""Training configuration: every hyperparameter of supplement Tab. 3 / Tab. 4, the two presets, overrides.
+"""Training configuration: every hyperparameter of supplement Tab. 3 / Tab. 4 in nested groups, the presets.
 
-Presets:
+A :class:`TrainConfig` holds one dataclass per concern (``schedule``, ``lr``, ``gaussians``, ``densify``,
+``shading``, ``losses``, ``multiview``, ``raytrace``, ``runtime``). A key is written dotted
+(``losses.lambda_dssim``) or by its flat name (``lambda_dssim``, the single-level layout of runs and tuning
+studies made before the groups; every flat name is unique). Both are accepted everywhere a key is given.
+
+Presets (:data:`PRESETS`, config instances):
     ``sss3dgs``  Tab. 4 "Original" (the SSS-3DGS release), no multi-view losses.
     ``diamond``  Tab. 3 / Tab. 4 "Best", with the multi-view silhouette (0.5) and depth (0.3) losses.
 
-Any field can be overridden by ``--set key=value`` (repeatable) or by a JSON ``--config FILE`` holding a
-flat object of fields (what ``diamond-sss tune`` writes). The resolved configuration is saved in the run.
+Values given as text or JSON are checked and applied by :mod:`diamond_sss.training.overrides`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
+import difflib
+import math
 import typing
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields
-from pathlib import Path
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
 from typing import Any
+
+from diamond_sss.utils.fields import described
+
+
+def _key(default: Any, meaning: str, flat: str | None = None) -> Any:
+    """A config field with its meaning (``diamond-sss config`` and ``--set`` read it) and, where it differs
+    from the field name, its ``flat`` name in the single-level layout of earlier runs."""
+    return described(default, meaning, **({"flat": flat} if flat else {}))
+
+
+@dataclass
+class Schedule:
+    """Length of the run and its seed."""
+
+    iterations: int = _key(10_000, "training steps")
+    batch_size: int = _key(4, "images per training step")
+    seed: int = _key(0, "seed of the regime selection, initialisation and every random draw")
+
+
+@dataclass
+class LearningRates:
+    """Learning rates per parameter group (Tab. 3); the Gaussian ones are named in ``GAUSSIAN_PARAMS``."""
+
+    position_init: float = _key(0.00016, "initial learning rate of the means (times the scene radius)",
+                                "position_lr_init")
+    position_final: float = _key(0.0000016, "final learning rate of the means (exponential decay)",
+                                 "position_lr_final")
+    position_delay_mult: float = _key(0.01, "learning rate factor of the means at the start of the delay",
+                                      "position_lr_delay_mult")
+    position_delay_steps: int = _key(0, "steps of the means' learning rate warm-up delay",
+                                     "position_lr_delay_steps")
+    position_max_steps: int = _key(30_000, "step at which the means' learning rate reaches its final value",
+                                   "position_lr_max_steps")
+    normal: float = _key(0.01, "learning rate of the normals", "normal_lr")
+    opacity: float = _key(0.05, "learning rate of the opacities", "opacity_lr")
+    scaling: float = _key(0.005, "learning rate of the scales", "scaling_lr")
+    rotation: float = _key(0.001, "learning rate of the rotations", "rotation_lr")
+    base_color: float = _key(0.01, "learning rate of the base colours", "base_color_lr")
+    roughness: float = _key(0.01, "learning rate of the roughness", "roughness_lr")
+    metallic: float = _key(0.01, "learning rate of the metalness", "metallic_lr")
+    subsurfacedness: float = _key(0.01, "learning rate of the subsurfaceness", "subsurfacedness_lr")
+    visibility: float = _key(0.0025, "learning rate of the visibility SH coefficients", "visibility_lr")
+    sss: float = _key(0.001, "learning rate of the subsurface-scattering MLP", "sss_lr")
+    light: float = _key(0.001, "learning rate of the log light scale", "light_lr")
+    decay_step: int = _key(50_000, "steps between step decays of every learning rate", "lr_decay_step")
+    decay_factor: float = _key(0.1, "factor of each step decay", "lr_decay_factor")
+
+
+@dataclass
+class Gaussians:
+    """Initialisation and size of the Gaussian set."""
+
+    init: str = _key("auto", "initialisation: auto | ply (points3d.ply) | hull (visual hull) | random")
+    count: int = _key(5_000, "initial number of Gaussians", "num_gaussians")
+    max_count: int = _key(300_000, "cap on the number of Gaussians", "max_gaussians")
+
+
+@dataclass
+class Densification:
+    """Growing and pruning: the fields of gsplat's ``DefaultStrategy`` it sets (same names) and ``enabled``."""
+
+    enabled: bool = _key(True, "grow and prune Gaussians (false keeps the count fixed)", "densify")
+    prune_opa: float = _key(0.005, "opacity below which a Gaussian is pruned")
+    grow_grad2d: float = _key(0.0010, "mean 2D gradient above which a Gaussian is densified",
+                              "densify_grad_threshold")
+    grow_scale3d: float = _key(0.01, "scale (fraction of the scene) above which a Gaussian is split, "
+                               "not cloned", "percent_dense")
+    refine_start_iter: int = _key(500, "first step of densification", "densify_from_iter")
+    refine_stop_iter: int = _key(10_000, "last step of densification", "densify_until_iter")
+    refine_every: int = _key(150, "steps between densifications", "densification_interval")
+    reset_every: int = _key(1_000, "steps between opacity resets", "opacity_reset_interval")
+
+    def strategy_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of ``gsplat.strategy.DefaultStrategy`` (every field but ``enabled``)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "enabled"}
+
+
+@dataclass
+class Shading:
+    """The subsurface-scattering MLP, the light and the background (a scene is built from this group)."""
+
+    sss_width: int = _key(32, "hidden width of the subsurface-scattering MLP")
+    light_init: float = _key(-1.0, "initial log light scale (when not calibrated from the data)")
+    light_init_from_data: bool = _key(True, "calibrate the initial light scale from the images")
+    random_background: bool = _key(False, "train on random background colours")
+    mixed_precision: bool = _key(True, "bfloat16 autocast of the subsurface-scattering MLP on CUDA")
+
+
+@dataclass
+class Losses:
+    """Loss weights (Eq. A.1-A.7, Tab. 3) and where the photometric loss compares images."""
+
+    photometric_space: str = _key("srgb", "where L1 / D-SSIM compare images: srgb (as the SSS-3DGS release, "
+                                  "which compares 8-bit sRGB values, and as the metrics) | linear radiance")
+    lambda_dssim: float = _key(0.492, "weight of the D-SSIM term of the photometric loss")
+    lambda_lpips: float = _key(0.171, "weight of the LPIPS loss")
+    lambda_mask: float = _key(0.1, "weight of the mask (alpha vs object mask) loss")
+    lambda_mask_entropy: float = _key(0.1, "weight of the mask entropy loss")
+    lambda_normal: float = _key(0.037, "weight of the normal consistency loss")
+    lambda_visibility: float = _key(0.01, "weight of the ray-traced visibility loss")
+    lambda_incident_light: float = _key(0.015, "weight of the incident light regulariser")
+    lambda_enh: float = _key(0.005, "weight of the base colour enhancement loss")
+    lambda_base_color: float = _key(0.002, "weight of the base colour prior")
+    lambda_base_color_smooth: float = _key(0.005, "weight of the base colour smoothness")
+    lambda_metallic_smooth: float = _key(0.007, "weight of the metalness smoothness")
+    lambda_roughness_smooth: float = _key(0.003, "weight of the roughness smoothness")
+    lambda_subsurfacedness_smooth: float = _key(0.002, "weight of the subsurfaceness smoothness")
+    lambda_sil: float = _key(0.5, "weight of the multi-view silhouette loss")
+    lambda_depth: float = _key(0.3, "weight of the multi-view depth loss")
+    synthetic_weight: float = _key(0.5, "loss weight of diffusion-generated images")
+
+
+@dataclass
+class MultiView:
+    """Multi-view consistency sampling (Sec. D). Depth is smooth and sampled bilinearly, so the target views
+    give the same constraint at a fraction of the resolution."""
+
+    pairs_per_step: int = _key(2, "view pairs of the multi-view losses per step", "mv_pairs_per_step")
+    pixels_per_pair: int = _key(512, "pixels sampled per view pair", "mv_pixels_per_pair")
+    target_mode: str = _key("nearest-k", "target view choice: nearest-k | random", "mv_target_mode")
+    nearest_k: int = _key(4, "nearest views a target is drawn from (nearest-k)", "mv_nearest_k")
+    sil_threshold: float = _key(0.5, "alpha above which a pixel counts as inside the silhouette",
+                                "mv_sil_threshold")
+    occlusion_tol: float = _key(0.02, "relative depth tolerance of the occlusion test", "mv_occlusion_tol")
+    charbonnier_eps: float = _key(0.0, "Charbonnier epsilon of the depth loss (0: L1)", "mv_charbonnier_eps")
+    include_unobserved_views: bool = _key(True, "also draw targets among lattice views with no image",
+                                          "mv_include_unobserved_views")
+    target_downscale: int = _key(2, "resolution divisor of the target views", "mv_target_downscale")
+
+
+@dataclass
+class RayTrace:
+    """Ray-traced visibility supervision (L_raytrace): every ``every`` steps, on a random Gaussian subset."""
+
+    every: int = _key(10, "steps between ray-traced visibility supervisions", "raytrace_every")
+    gaussians: int = _key(1_024, "Gaussians ray-traced per supervision", "raytrace_gaussians")
+    directions: int = _key(4, "directions traced per Gaussian", "raytrace_directions")
+
+
+@dataclass
+class Runtime:
+    """Device, logging and checkpoints. These small kernels gain little from a second CPU thread and lose 10x
+    when cores are oversubscribed, hence one thread by default."""
+
+    device: str = _key("auto", "auto | cpu | cuda[:i]")
+    cpu_threads: int = _key(1, "torch intra-op threads on CPU (0: torch's default)")
+    downscale: float = _key(1.0, "divide the image size by this factor")
+    checkpoint_every: int = _key(500, "steps between checkpoints")
+    log_every: int = _key(25, "steps between scalar logs")
+    image_log_every: int = _key(500, "steps between TensorBoard image logs")
+    lpips_weights: str = _key("", "LPIPS (VGG) weights in safetensors (empty: $DIAMOND_SSS_LPIPS_WEIGHTS)")
 
 
 @dataclass
 class TrainConfig:
-    """Hyperparameters of one reconstruction. Learning rates per parameter group as in Tab. 3."""
+    """Hyperparameters of one reconstruction, one group per concern."""
 
-    # schedule
-    iterations: int = 10_000
-    batch_size: int = 4
-    seed: int = 0
-    # learning rates (Tab. 3); means use position_lr_* with exponential decay, scaled by the scene radius
-    position_lr_init: float = 0.00016
-    position_lr_final: float = 0.0000016
-    position_lr_delay_mult: float = 0.01
-    position_lr_delay_steps: int = 0
-    position_lr_max_steps: int = 30_000
-    normal_lr: float = 0.01
-    opacity_lr: float = 0.05
-    scaling_lr: float = 0.005
-    rotation_lr: float = 0.001
-    base_color_lr: float = 0.01
-    roughness_lr: float = 0.01
-    metallic_lr: float = 0.01
-    subsurfacedness_lr: float = 0.01
-    visibility_lr: float = 0.0025
-    sss_lr: float = 0.001
-    light_lr: float = 0.001
-    light_init: float = -1.0
-    light_init_from_data: bool = True
-    lr_decay_step: int = 50_000
-    lr_decay_factor: float = 0.1
-    # Gaussians, initialisation and densification (gsplat DefaultStrategy; densify=False keeps N fixed)
-    num_gaussians: int = 5_000
-    init: str = "auto"
-    densify: bool = True
-    percent_dense: float = 0.01
-    densification_interval: int = 150
-    opacity_reset_interval: int = 1_000
-    densify_from_iter: int = 500
-    densify_until_iter: int = 10_000
-    densify_grad_threshold: float = 0.0010
-    max_gaussians: int = 300_000
-    # shading
-    sss_width: int = 32
-    random_background: bool = False
-    # loss weights (Eq. A.1-A.7, Tab. 3)
-    lambda_dssim: float = 0.492
-    lambda_lpips: float = 0.171
-    lambda_mask: float = 0.1
-    lambda_mask_entropy: float = 0.1
-    lambda_normal: float = 0.037
-    lambda_visibility: float = 0.01
-    lambda_incident_light: float = 0.015
-    lambda_enh: float = 0.005
-    lambda_base_color: float = 0.002
-    lambda_base_color_smooth: float = 0.005
-    lambda_metallic_smooth: float = 0.007
-    lambda_roughness_smooth: float = 0.003
-    lambda_subsurfacedness_smooth: float = 0.002
-    lambda_sil: float = 0.5
-    lambda_depth: float = 0.3
-    synthetic_weight: float = 0.5
-    # ray-traced visibility supervision (L_raytrace): every k steps, on a random subset of Gaussians
-    raytrace_every: int = 10
-    raytrace_gaussians: int = 1_024
-    raytrace_directions: int = 4
-    # multi-view consistency sampling (Sec. D); target views are rendered at 1/mv_target_downscale resolution
-    # (depth is smooth and sampled bilinearly, so the constraint is the same at a fraction of the cost)
-    mv_pairs_per_step: int = 2
-    mv_pixels_per_pair: int = 512
-    mv_target_mode: str = "nearest-k"
-    mv_nearest_k: int = 4
-    mv_sil_threshold: float = 0.5
-    mv_occlusion_tol: float = 0.02
-    mv_charbonnier_eps: float = 0.0
-    mv_include_unobserved_views: bool = True
-    mv_target_downscale: int = 2
-    # runtime; cpu_threads: torch intra-op threads on CPU (0 = torch's default). One thread is the default:
-    # these small kernels gain little from a second thread and lose 10x when cores are oversubscribed.
-    device: str = "auto"
-    cpu_threads: int = 1
-    mixed_precision: bool = True
-    downscale: float = 1.0
-    checkpoint_every: int = 500
-    log_every: int = 25
-    image_log_every: int = 500
-    lpips_weights: str = ""
+    schedule: Schedule = field(default_factory=Schedule)
+    lr: LearningRates = field(default_factory=LearningRates)
+    gaussians: Gaussians = field(default_factory=Gaussians)
+    densify: Densification = field(default_factory=Densification)
+    shading: Shading = field(default_factory=Shading)
+    losses: Losses = field(default_factory=Losses)
+    multiview: MultiView = field(default_factory=MultiView)
+    raytrace: RayTrace = field(default_factory=RayTrace)
+    runtime: Runtime = field(default_factory=Runtime)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Nested ``{group: {field: value}}`` (the layout of a run's ``config.json``)."""
         return dataclasses.asdict(self)
 
+    def get(self, key: str) -> Any:
+        """The value of a dotted (``losses.lambda_dssim``) or flat (``lambda_dssim``) key."""
+        group, name = canonical_key(key).split(".")
+        return getattr(getattr(self, group), name)
 
-PRESETS: dict[str, dict[str, Any]] = {
-    "diamond": {},
-    "sss3dgs": {
-        "lambda_dssim": 0.2,
-        "lambda_lpips": 0.2,
-        "lambda_normal": 0.02,
-        "lambda_visibility": 0.01,
-        "lambda_incident_light": 0.02,
-        "lambda_base_color": 0.005,
-        "lambda_base_color_smooth": 0.006,
-        "lambda_metallic_smooth": 0.002,
-        "lambda_roughness_smooth": 0.002,
-        "lambda_subsurfacedness_smooth": 0.002,
-        "densification_interval": 100,
-        "opacity_reset_interval": 3_000,
-        "densify_from_iter": 500,
-        "densify_until_iter": 15_000,
-        "densify_grad_threshold": 0.0002,
-        "lambda_sil": 0.0,
-        "lambda_depth": 0.0,
-    },
+    def flat(self) -> dict[str, Any]:
+        """``{flat name: value}``: the single-level layout of earlier runs and tuning studies."""
+        return {flat: self.get(dotted) for flat, dotted in FLAT_KEYS.items()}
+
+
+PRESETS: dict[str, TrainConfig] = {
+    "diamond": TrainConfig(),
+    "sss3dgs": TrainConfig(
+        losses=Losses(lambda_dssim=0.2, lambda_lpips=0.2, lambda_normal=0.02, lambda_visibility=0.01,
+                      lambda_incident_light=0.02, lambda_base_color=0.005, lambda_base_color_smooth=0.006,
+                      lambda_metallic_smooth=0.002, lambda_roughness_smooth=0.002,
+                      lambda_subsurfacedness_smooth=0.002, lambda_sil=0.0, lambda_depth=0.0),
+        densify=Densification(refine_every=100, reset_every=3_000, refine_start_iter=500,
+                              refine_stop_iter=15_000, grow_grad2d=0.0002),
+    ),
 }
+"""The presets; :func:`~diamond_sss.training.overrides.make_config` copies them, never changes them."""
 
 
-def short_schedule(iterations: int) -> dict[str, Any]:
-    """Overrides for a reconstruction of a few hundred steps at 64x64 on a CPU (demo, tests, benchmarks).
+GROUPS: dict[str, type] = typing.get_type_hints(TrainConfig)
+"""Group name -> its dataclass."""
 
-    Tab. 3's schedule compressed to ``iterations``: densification from 25% to 85% of the run every ~12%,
-    no opacity reset (too short for the Gaussians to recover), the position learning rate decaying over the
-    run, batch 1, 3k initial Gaussians capped at 8k, lighter multi-view and ray-tracing sampling.
-    """
-    return {
-        "iterations": iterations,
-        "position_lr_max_steps": iterations,
-        "batch_size": 1,
-        "num_gaussians": 3_000,
-        "max_gaussians": 8_000,
-        "densify_from_iter": max(1, iterations // 4),
-        "densify_until_iter": max(2, int(iterations * 0.85)),
-        "densification_interval": max(1, iterations // 8),
-        "opacity_reset_interval": 10 * iterations + 1,
-        "mv_pairs_per_step": 1,
-        "mv_pixels_per_pair": 256,
-        "raytrace_gaussians": 512,
-        "log_every": max(1, iterations // 20),
-        "checkpoint_every": max(1, iterations // 2),
-    }
+FIELDS: dict[str, dataclasses.Field] = {f"{group}.{f.name}": f for group, kind in GROUPS.items()
+                                        for f in fields(kind)}
+"""Dotted key -> dataclass field (its ``metadata`` holds ``help`` and, where it differs, ``flat``)."""
+
+FLAT_KEYS: dict[str, str] = {f.metadata.get("flat", f.name): dotted for dotted, f in FIELDS.items()}
+"""Flat name (the single-level layout of earlier runs and tuning studies) -> dotted key."""
 
 
 def field_types() -> dict[str, type]:
-    """Field name -> Python type of :class:`TrainConfig`."""
-    hints = typing.get_type_hints(TrainConfig)
-    return {f.name: hints[f.name] for f in fields(TrainConfig)}
+    """Dotted key -> Python type of every :class:`TrainConfig` field."""
+    return {f"{group}.{name}": hint for group, kind in GROUPS.items()
+            for name, hint in typing.get_type_hints(kind).items()}
 
 
-def parse_value(key: str, text: str) -> Any:
-    """Parse the string ``text`` as the type of field ``key``; clear errors for unknown keys and bad values."""
-    types = field_types()
-    if key not in types:
-        close = [name for name in types if key.split("_")[-1] in name][:6]
-        raise ValueError(f"unknown config key '{key}'" + (f"; similar keys: {close}" if close else ""))
-    kind = types[key]
-    text = text.strip()
-    if kind is bool:
-        lowered = text.lower()
-        if lowered in ("1", "true", "yes", "on"):
-            return True
-        if lowered in ("0", "false", "no", "off"):
-            return False
-        raise ValueError(f"config key '{key}' expects true/false, got '{text}'")
-    try:
-        if kind is int:
-            number = float(text)
-            if not number.is_integer():
-                raise ValueError
-            return int(number)
-        if kind is float:
-            return float(text)
-    except ValueError as exc:
-        raise ValueError(f"config key '{key}' expects {kind.__name__}, got '{text}'") from exc
-    return text
+def canonical_key(key: str) -> str:
+    """The dotted key of a dotted or flat ``key``; unknown keys raise ``ValueError`` naming similar keys."""
+    key = key.strip()
+    if key in FIELDS:
+        return key
+    if key in FLAT_KEYS:
+        return FLAT_KEYS[key]
+    names = (*FIELDS, *FLAT_KEYS)
+    stem = key.split(".")[-1].split("_")[-1]
+    close = difflib.get_close_matches(key, names, n=6, cutoff=0.7)
+    close = [*close, *(name for name in names if stem in name and name not in close)][:6]
+    raise ValueError(f"unknown config key '{key}'" + (f"; similar keys: {close}" if close else ""))
 
 
-def _checked(key: str, value: Any) -> Any:
-    types = field_types()
-    if key not in types:
-        raise ValueError(f"unknown config key '{key}'")
-    kind = types[key]
-    if isinstance(value, str) and kind is not str:
-        return parse_value(key, value)
-    if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
-    if kind is int and isinstance(value, float) and value.is_integer():
-        return int(value)
-    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-        raise ValueError(f"config key '{key}' expects {kind.__name__}, got {value!r}")
-    return value
+SCHEDULE_KEYS = ("lr.position_delay_steps", "lr.position_max_steps", "lr.decay_step",
+                 "densify.refine_start_iter", "densify.refine_stop_iter", "densify.refine_every",
+                 "densify.reset_every", "runtime.checkpoint_every", "runtime.log_every", "runtime.image_log_every")
+"""Step-valued keys: a run of another length scales them with :func:`scale_schedule`."""
+
+SHORT_SCHEDULE: dict[str, int] = {
+    "iterations": 1000, "position_lr_max_steps": 1000, "densify_from_iter": 250, "densify_until_iter": 850,
+    "densification_interval": 125, "opacity_reset_interval": 10_001, "log_every": 50, "checkpoint_every": 500,
+}
+"""Tab. 3's schedule compressed for a run of a few hundred steps (demo, benchmarks), at 1000 steps:
+densification from 25% to 85% of the run every 12.5%, no opacity reset (too short for the Gaussians to
+recover), the position learning rate decaying over the run."""
+
+CPU_BUDGET: dict[str, int] = {"batch_size": 1, "num_gaussians": 3_000, "max_gaussians": 8_000,
+                              "mv_pairs_per_step": 1, "mv_pixels_per_pair": 256, "raytrace_gaussians": 512}
+"""Batch 1, 3k initial Gaussians capped at 8k, lighter multi-view and ray-tracing sampling (64x64 on a CPU)."""
+
+SHORT_RUN_MODEL: dict[str, Any] = {"sss_lr": 0.005, "sss_width": 64, "lambda_incident_light": 0.0}
+"""What a run 80-100x shorter than the paper's (1000 steps, not 80-100k) needs, each measured on the demo
+object (benchmarks/RESULTS.md, issue 17): the MLP learns 5x faster (+1.6 dB) and 2x wider (+0.5 dB), and the
+incident light is not tied to the SH visibility, which ~10 ray-traced updates per Gaussian leave near its
+initial value (the tie then forbids shadows: +0.5 dB)."""
 
 
-def parse_sets(sets: Sequence[str]) -> dict[str, Any]:
-    """``["key=value", ...]`` (as given to ``--set``) -> typed overrides."""
-    parsed: dict[str, Any] = {}
-    for item in sets:
-        if "=" not in item:
-            raise ValueError(f"--set expects key=value, got '{item}'")
-        key, text = item.split("=", 1)
-        parsed[key.strip()] = parse_value(key.strip(), text)
-    return parsed
+SCHEDULE_FLOORS: dict[str, int] = {"densify.refine_every": 10, "densify.reset_every": 200}
+"""Fewest steps a scaled run keeps for processes that take optimisation steps, whatever the run's length:
+the gradient statistics of one densification (below ~10 steps a Gaussian is seen once or twice and the
+noisy statistic densifies nearly all of them: 300k Gaussians after 50 steps) and the recovery of the
+opacities after a reset (~100 Adam steps at ``lr.opacity`` to climb back from 0.01)."""
 
 
-def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = None,
-                config_file: Path | None = None, sets: Sequence[str] = ()) -> TrainConfig:
-    """Resolve a configuration: preset, then ``config_file`` (JSON object), then ``overrides``, then ``sets``.
+def scale_schedule(values: Mapping[str, Any], scale: float,
+                   floors: Mapping[str, int] = SCHEDULE_FLOORS) -> dict[str, Any]:
+    """``values`` (dotted or flat keys, kept as given) with every :data:`SCHEDULE_KEYS` value times ``scale``,
+    rounded down, at least 1 (0 stays 0) and never below ``min(value, floors[dotted key])``.
 
-    ``sets`` are ``"key=value"`` strings as given to ``--set``.
+    The one schedule scaler: ``train --iterations``, :func:`short_schedule` and the tuning trials (which pass
+    no floors, so that every searched value stays distinct) use it.
     """
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset '{preset}'; presets: {sorted(PRESETS)}")
-    values: dict[str, Any] = dict(PRESETS[preset])
-    if config_file is not None:
-        path = Path(config_file)
-        if not path.is_file():
-            raise ValueError(f"config file not found: {path}")
-        try:
-            loaded = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: invalid JSON ({exc})") from exc
-        if not isinstance(loaded, dict):
-            raise ValueError(f"{path}: expected a JSON object of config keys")
-        for key, value in loaded.items():
-            try:
-                values[key] = _checked(key, value)
-            except ValueError as exc:
-                raise ValueError(f"{path}: {exc}") from exc
-    for key, value in (overrides or {}).items():
-        values[key] = _checked(key, value)
-    values.update(parse_sets(sets))
-    config = TrainConfig(**values)
-    validate_config(config)
-    return config
+    if not scale > 0:
+        raise ValueError(f"schedule scale must be positive, got {scale}")
+    dotted = {key: canonical_key(key) for key in values}
+    return {key: max(1, min(value, floors.get(dotted[key], 1)), math.floor(value * scale + 1e-9))
+            if dotted[key] in SCHEDULE_KEYS and value > 0 else value for key, value in values.items()}
 
 
-def validate_config(config: TrainConfig) -> None:
-    """Reject values that cannot work, naming the key."""
-    positive = ["iterations", "batch_size", "num_gaussians", "sss_width", "checkpoint_every", "log_every",
-                "densification_interval", "raytrace_every", "max_gaussians", "mv_target_downscale"]
-    for key in positive:
-        if getattr(config, key) <= 0:
-            raise ValueError(f"config key '{key}' must be positive, got {getattr(config, key)}")
-    for f in fields(config):
-        value = getattr(config, f.name)
-        if f.name.startswith("lambda_") and value < 0:
-            raise ValueError(f"config key '{f.name}' must be >= 0, got {value}")
-    if config.init not in ("auto", "ply", "hull", "random"):
-        raise ValueError(f"config key 'init' must be auto|ply|hull|random, got '{config.init}'")
-    if config.mv_target_mode not in ("nearest-k", "random"):
-        raise ValueError(f"config key 'mv_target_mode' must be nearest-k|random, got '{config.mv_target_mode}'")
-    if config.device not in ("auto", "cpu", "cuda") and not config.device.startswith("cuda:"):
-        raise ValueError(f"config key 'device' must be auto|cpu|cuda[:i], got '{config.device}'")
-    if config.downscale < 1:
-        raise ValueError(f"config key 'downscale' must be >= 1, got {config.downscale}")
+def schedule_for(values: Mapping[str, Any], iterations: int) -> dict[str, Any]:
+    """``iterations`` and the schedule keys of ``values`` (which holds its own ``iterations``; dotted or flat
+    keys, kept as given) scaled to it."""
+    if iterations <= 0:
+        raise ValueError(f"iterations must be positive, got {iterations}")
+    given = {canonical_key(key): key for key in values}
+    schedule = {given[key]: values[given[key]] for key in SCHEDULE_KEYS if key in given}
+    length = given["schedule.iterations"]
+    return {length: iterations, **scale_schedule(schedule, iterations / values[length])}
 
 
-def load_run_config(run: Path) -> TrainConfig:
-    """The resolved configuration saved in a run folder (``config.json``)."""
-    path = Path(run) / "config.json"
-    if not path.is_file():
-        raise ValueError(f"{run} is not a training run: {path} is missing")
-    return make_config("diamond", overrides=json.loads(path.read_text()))
+def short_schedule(iterations: int) -> dict[str, Any]:
+    """Overrides for a reconstruction of ``iterations`` steps at 64x64 on a CPU: :data:`SHORT_SCHEDULE`
+    scaled to ``iterations``, with :data:`CPU_BUDGET` and :data:`SHORT_RUN_MODEL`."""
+    return {**schedule_for(SHORT_SCHEDULE, iterations), **CPU_BUDGET, **SHORT_RUN_MODEL}

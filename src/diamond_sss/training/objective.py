@@ -5,9 +5,9 @@
               + l_normal L_normals + l_incident L_incident + l_visibility L_raytrace
               + l_sil L_sil^MV + l_depth L_depth^MV
 
-``[.]_w``: per-image weighted (1 for real images, ``synthetic_weight`` = alpha for generated ones). All image
-terms compare linear radiance; LPIPS compares sRGB. Geometric terms (mask, normals, multi-view) use every
-image at full weight.
+``[.]_w``: per-image weighted (1 for real images, ``synthetic_weight`` = alpha for generated ones). L1 and
+D-SSIM compare sRGB values (``losses.photometric_space``, or linear radiance), LPIPS sRGB, the regularisers
+linear radiance. Geometric terms (mask, normals, multi-view) use every image at full weight.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.losses import photometric, regularizers
 from diamond_sss.losses.lpips import LPIPS
 from diamond_sss.losses.photometric import weighted_mean
-from diamond_sss.rendering.relightable import SceneRender
+from diamond_sss.scene.model import SceneRender
 from diamond_sss.training.config import TrainConfig
 
 SMOOTHED_ATTRIBUTES = {
@@ -48,31 +48,35 @@ def image_objective(render: SceneRender, target: TargetBatch, cfg: TrainConfig,
     """Weighted loss terms of one batch (each already multiplied by its lambda), by name."""
     terms: dict[str, Tensor] = {}
     pred = render.radiance
-    terms["photometric"] = photometric.photometric_loss(pred, target.rgb, cfg.lambda_dssim, target.weights)
-    if lpips_model is not None and cfg.lambda_lpips > 0:
+    if cfg.losses.photometric_space == "srgb":
+        compared, reference = linear_to_srgb(pred), linear_to_srgb(target.rgb)
+    else:
+        compared, reference = pred, target.rgb
+    terms["photometric"] = photometric.photometric_loss(compared, reference, cfg.losses.lambda_dssim, target.weights)
+    if lpips_model is not None and cfg.losses.lambda_lpips > 0:
         distance = lpips_model(linear_to_srgb(pred), linear_to_srgb(target.rgb))
-        terms["lpips"] = cfg.lambda_lpips * weighted_mean(distance, target.weights)
+        terms["lpips"] = cfg.losses.lambda_lpips * weighted_mean(distance, target.weights)
     gb = render.gbuffer
     mask = target.mask
-    if cfg.lambda_mask > 0:
-        terms["mask"] = cfg.lambda_mask * regularizers.mask_bce_loss(gb.alpha, mask)
-    if cfg.lambda_mask_entropy > 0:
-        terms["mask_entropy"] = cfg.lambda_mask_entropy * regularizers.mask_entropy_loss(gb.alpha)
+    if cfg.losses.lambda_mask > 0:
+        terms["mask"] = cfg.losses.lambda_mask * regularizers.mask_bce_loss(gb.alpha, mask)
+    if cfg.losses.lambda_mask_entropy > 0:
+        terms["mask_entropy"] = cfg.losses.lambda_mask_entropy * regularizers.mask_entropy_loss(gb.alpha)
     for name, key in SMOOTHED_ATTRIBUTES.items():
-        weight = getattr(cfg, key)
+        weight = getattr(cfg.losses, key)
         if weight > 0:
             terms[f"smooth_{name}"] = weight * regularizers.bilateral_smoothness_loss(
                 getattr(gb, name), target.rgb, mask)
-    if cfg.lambda_enh > 0:
-        terms["enhance"] = cfg.lambda_enh * regularizers.enhancement_loss(gb.base_color, target.rgb, mask)
-    if cfg.lambda_base_color > 0:
-        terms["base_color"] = cfg.lambda_base_color * regularizers.base_color_prior_loss(
+    if cfg.losses.lambda_enh > 0:
+        terms["enhance"] = cfg.losses.lambda_enh * regularizers.enhancement_loss(gb.base_color, target.rgb, mask)
+    if cfg.losses.lambda_base_color > 0:
+        terms["base_color"] = cfg.losses.lambda_base_color * regularizers.base_color_prior_loss(
             gb.base_color, target.rgb, mask)
-    if cfg.lambda_normal > 0:
+    if cfg.losses.lambda_normal > 0:
         pseudo = regularizers.normals_from_depth(gb.depth, target.viewmats, target.Ks)
-        terms["normal"] = cfg.lambda_normal * regularizers.normal_consistency_loss(
+        terms["normal"] = cfg.losses.lambda_normal * regularizers.normal_consistency_loss(
             torch.nn.functional.normalize(gb.normal, dim=-1), pseudo, mask * (gb.alpha.detach() > 0.5))
-    if cfg.lambda_incident_light > 0:
-        terms["incident"] = cfg.lambda_incident_light * regularizers.incident_light_loss(
+    if cfg.losses.lambda_incident_light > 0:
+        terms["incident"] = cfg.losses.lambda_incident_light * regularizers.incident_light_loss(
             gb.incident, gb.visibility, mask)
     return terms

@@ -1,30 +1,16 @@
-"""Run-level jobs behind the CLI: train a run folder, evaluate it, render it."""
+"""The run-level training job behind the CLI: train a run folder (evaluate and render: evaluation.run)."""
 
 from __future__ import annotations
 
-import json
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import imageio.v3 as iio
-import numpy as np
-import torch
-
-from diamond_sss.data.conventions import look_at_opengl_c2w, opengl_c2w_to_opencv_w2c
 from diamond_sss.data.dataset import OLATDataset
-from diamond_sss.data.images import to_srgb8, write_png
 from diamond_sss.data.regimes import select_regime
-from diamond_sss.evaluation.evaluate import (
-    evaluate_scene,
-    save_comparison_figure,
-    save_decomposition_figure,
-    write_evaluation,
-)
-from diamond_sss.training.config import make_config
-from diamond_sss.training.trainer import ImageSource, Trainer, TrainResult, load_scene, resolve_device
-from diamond_sss.utils.io import atomic_write, atomic_write_json
+from diamond_sss.training.overrides import make_config
+from diamond_sss.training.trainer import ImageSource, Trainer, TrainResult
+from diamond_sss.utils.io import atomic_write_json
 
 
 def train_run(data: Path, out: Path, *, split: str = "train", regime: str = "all", preset: str = "diamond",
@@ -37,8 +23,8 @@ def train_run(data: Path, out: Path, *, split: str = "train", regime: str = "all
     images), ``data.json`` (where the data came from) and, when done, ``model.safetensors``.
     """
     cfg = make_config(preset, overrides=overrides, config_file=config_file, sets=sets)
-    dataset = OLATDataset(data, split, downscale=cfg.downscale)
-    selection = select_regime(dataset, regime, cfg.seed)
+    dataset = OLATDataset(data, split, downscale=cfg.runtime.downscale)
+    selection = select_regime(dataset, regime, cfg.schedule.seed)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "regime.json", selection.to_json())
@@ -47,87 +33,3 @@ def train_run(data: Path, out: Path, *, split: str = "train", regime: str = "all
     sources = [ImageSource(dataset.subset(selection.observations), 1.0), *extra_sources]
     trainer = Trainer(cfg, sources, out, show_progress=show_progress)
     return trainer.run(resume=resume)
-
-
-def evaluate_run(run: Path, data: Path, *, split: str = "test", lpips_weights: str | None = None,
-                 max_images: int | None = None, figures: int = 4, device: str = "auto",
-                 show_progress: bool = True) -> dict:
-    """Evaluate a run on ``split``; writes ``<run>/eval_<split>/`` and returns the summary."""
-    scene, cfg = load_scene(run, resolve_device(device))
-    dataset = OLATDataset(data, split, downscale=cfg.downscale)
-    evaluation = evaluate_scene(scene, dataset, lpips_weights=lpips_weights, max_images=max_images,
-                                show_progress=show_progress)
-    out_dir = Path(run) / f"eval_{split}"
-    extra = {"split": split, "data": str(Path(data).resolve())}
-    write_evaluation(out_dir, evaluation, extra)
-    if figures > 0:
-        count = min(figures, len(dataset))
-        picks = [round(i * (len(dataset) - 1) / max(1, count - 1)) for i in range(count)]
-        save_comparison_figure(out_dir / "comparison.png", scene, dataset, picks, title=f"{Path(run).name} [{split}]")
-        save_decomposition_figure(out_dir / "decomposition.png", scene, dataset, picks[0])
-    return {**evaluation.summary, **extra}
-
-
-def orbit_cameras(center: torch.Tensor, radius: float, frames: int, elevation_deg: float) -> torch.Tensor:
-    """``[F,4,4]`` OpenCV w2c of cameras circling ``center`` (world Z up) at ``radius``."""
-    elevation = math.radians(elevation_deg)
-    mats = []
-    for k in range(frames):
-        azimuth = 2.0 * math.pi * k / frames
-        eye = center.double() + radius * torch.tensor([math.cos(elevation) * math.cos(azimuth),
-                                                       math.cos(elevation) * math.sin(azimuth),
-                                                       math.sin(elevation)], dtype=torch.float64)
-        mats.append(opengl_c2w_to_opencv_w2c(look_at_opengl_c2w(eye, center.double())).float())
-    return torch.stack(mats)
-
-
-@torch.no_grad()
-def render_run(run: Path, out: Path, *, data: Path | None = None, split: str = "test",
-               views: Sequence[int] = (), orbit: int = 0, orbit_elevation_deg: float = 20.0,
-               lights: Sequence[float] = (), light_intensity: float = 1.0, overrides: dict | None = None,
-               size: int | None = None, device: str = "auto") -> list[Path]:
-    """Render data cameras or an orbit under given lights (summed) with material overrides; PNGs + GIF."""
-    run = Path(run)
-    scene, cfg = load_scene(run, resolve_device(device))
-    dev = next(scene.parameters()).device
-    if data is None:
-        data = Path(json.loads((run / "data.json").read_text())["data"])
-    dataset = OLATDataset(data, split, downscale=cfg.downscale)
-    if len(lights) % 3 != 0:
-        raise ValueError(f"--light expects x y z triples, got {len(lights)} numbers")
-    light_list = [torch.tensor(lights[i:i + 3], dtype=torch.float32) for i in range(0, len(lights), 3)]
-    if orbit > 0:
-        width = height = size or dataset.width
-        K = dataset.intrinsics[0].clone()
-        K[:2] *= width / dataset.width
-        bounds = dataset.bounds
-        distance = float(dataset.camera_centers.sub(bounds.center).norm(dim=-1).mean())
-        cameras = [(w2c, K) for w2c in orbit_cameras(bounds.center, distance, orbit, orbit_elevation_deg)]
-    else:
-        chosen = list(views) or list(range(dataset.num_views))
-        for view in chosen:
-            if not 0 <= view < dataset.num_views:
-                raise ValueError(f"--views: view {view} is not in {data} [{split}] (0..{dataset.num_views - 1})")
-        cameras = [(dataset.cameras[v].w2c, dataset.cameras[v].K) for v in chosen]
-        width, height = dataset.width, dataset.height
-    if not light_list:
-        light_list = [dataset.lights[0].position]
-    intensity = torch.full((1, 3), float(light_intensity), device=dev)
-    out = Path(out)
-    written, frames = [], []
-    for k, (w2c, K) in enumerate(cameras):
-        radiance = torch.zeros(height, width, 3, device=dev)
-        alpha = torch.zeros(height, width, 1, device=dev)
-        for position in light_list:
-            render = scene.render(w2c[None].to(dev), K[None].to(dev), width, height, position[None].to(dev),
-                                  intensity, overrides=overrides)
-            radiance += render.radiance[0]
-            alpha = render.gbuffer.alpha[0]
-        image = to_srgb8(radiance.cpu(), alpha.cpu())
-        written.append(write_png(out / f"frame_{k:04d}.png", image))
-        frames.append(image[..., :3])
-    if orbit > 0:
-        gif = out / "orbit.gif"
-        atomic_write(gif, lambda tmp: iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=80, loop=0))
-        written.append(gif)
-    return written

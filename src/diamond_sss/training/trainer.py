@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,35 +27,29 @@ from diamond_sss.data.conventions import camera_centers, linear_to_srgb, scale_i
 from diamond_sss.data.dataset import OLATDataset, seeded_epoch_indices
 from diamond_sss.data.images import resize_area
 from diamond_sss.gaussians.init import initial_points
-from diamond_sss.gaussians.model import GaussianModel
+from diamond_sss.gaussians.model import GAUSSIAN_PARAMS, GaussianModel
 from diamond_sss.losses.lpips import load_lpips
 from diamond_sss.losses.multiview import MultiViewConfig, multiview_losses_batched, sample_foreground_pixels
 from diamond_sss.losses.regularizers import raytrace_visibility_loss
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.io import save_scene, scene_from_tensors, scene_tensors
+from diamond_sss.scene.model import RelightableScene
 from diamond_sss.shading.raytrace import raytraced_visibility
 from diamond_sss.shading.sh import visibility_from_sh
-from diamond_sss.training.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from diamond_sss.training.checkpoint import resume_checkpoint, save_checkpoint
 from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.lattice import unify_lattices
 from diamond_sss.training.loss_log import LossLog
 from diamond_sss.training.objective import TargetBatch, image_objective
+from diamond_sss.training.run_folder import check_resumable
 from diamond_sss.training.schedules import exponential_lr, step_decay
 from diamond_sss.utils import rng
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
+from diamond_sss.utils.device import resolve_device
+from diamond_sss.utils.io import atomic_write_json
 
 logger = logging.getLogger(__name__)
 
-GAUSSIAN_LR_KEYS = {
-    "scales": "scaling_lr",
-    "quats": "rotation_lr",
-    "opacities": "opacity_lr",
-    "normals": "normal_lr",
-    "base_color": "base_color_lr",
-    "roughness": "roughness_lr",
-    "metallic": "metallic_lr",
-    "subsurface": "subsurfacedness_lr",
-    "visibility_sh": "visibility_lr",
-}
+GAUSSIAN_LR_KEYS = {param.name: param.lr for param in GAUSSIAN_PARAMS if param.lr is not None}
+"""Gaussian parameter -> the config field of its learning rate (the positions have their own schedule)."""
 
 
 @dataclass
@@ -76,19 +71,16 @@ class TrainResult:
     history: list[dict] = field(default_factory=list)
 
 
+StepCallback = Callable[[int, RelightableScene, dict[str, Tensor]], bool | None]
+"""Called by :meth:`Trainer.run` after every step with the number of steps done, the scene and the step's
+loss terms and ``total`` (detached scalars on the device; reading one waits for the device). Returning
+``True`` ends the run after that step; an exception raised in it (e.g. Optuna's ``TrialPruned``) ends the
+run without writing the model."""
+
+
 def gaussian_optimizers(optimizers: dict[str, torch.optim.Optimizer]) -> dict[str, torch.optim.Optimizer]:
     """The per-Gaussian-parameter optimisers (what gsplat's strategies edit when they densify or prune)."""
     return {name: optimizers[name] for name in ("means", *GAUSSIAN_LR_KEYS)}
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> CUDA when available, else CPU."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("config 'device' asks for CUDA but torch.cuda.is_available() is False")
-    return device
 
 
 class Trainer:
@@ -97,22 +89,22 @@ class Trainer:
     Args:
         cfg: the resolved configuration.
         sources: image sources; the first is the real capture and defines the lattice.
-        run_dir: output folder (checkpoints, TensorBoard, model, config).
+        run_dir: output folder (checkpoints, TensorBoard, model, config); ``None``: write nothing.
         show_progress: show a tqdm bar.
     """
 
-    def __init__(self, cfg: TrainConfig, sources: list[ImageSource], run_dir: Path,
+    def __init__(self, cfg: TrainConfig, sources: list[ImageSource], run_dir: Path | None,
                  show_progress: bool = True) -> None:
         if not sources or len(sources[0].dataset) == 0:
             raise ValueError("training needs at least one image")
         self.cfg = cfg
         self.sources = sources
         self.lattice = sources[0].dataset
-        self.run_dir = Path(run_dir)
+        self.run_dir = None if run_dir is None else Path(run_dir)
         self.show_progress = show_progress
-        self.device = resolve_device(cfg.device)
-        if self.device.type == "cpu" and cfg.cpu_threads > 0:
-            torch.set_num_threads(cfg.cpu_threads)
+        self.device = resolve_device(cfg.runtime.device)
+        if self.device.type == "cpu" and cfg.runtime.cpu_threads > 0:
+            torch.set_num_threads(cfg.runtime.cpu_threads)
         self.index = [(s, i) for s, source in enumerate(sources) for i in range(len(source.dataset))]
         self.bounds = self.lattice.bounds
         self.union = unify_lattices([source.dataset for source in sources])
@@ -125,20 +117,17 @@ class Trainer:
         self.view_silhouettes = self._view_silhouettes()
         self._target_silhouettes: dict[int, Tensor] = {}
         self.loss_log = LossLog()
-        self.lpips = load_lpips(cfg.lpips_weights or None) if cfg.lambda_lpips > 0 else None
+        self.lpips = load_lpips(cfg.runtime.lpips_weights or None) if cfg.losses.lambda_lpips > 0 else None
         if self.lpips is not None:
             self.lpips = self.lpips.to(self.device)
+        mv = cfg.multiview
         self.mv_cfg = MultiViewConfig(
-            pairs_per_step=cfg.mv_pairs_per_step, pixels_per_pair=cfg.mv_pixels_per_pair,
-            target_mode=cfg.mv_target_mode, nearest_k=cfg.mv_nearest_k, sil_threshold=cfg.mv_sil_threshold,
-            occlusion_tol=cfg.mv_occlusion_tol,
-            charbonnier_eps=cfg.mv_charbonnier_eps if cfg.mv_charbonnier_eps > 0 else None,
+            pairs_per_step=mv.pairs_per_step, pixels_per_pair=mv.pixels_per_pair, target_mode=mv.target_mode,
+            nearest_k=mv.nearest_k, sil_threshold=mv.sil_threshold, occlusion_tol=mv.occlusion_tol,
+            charbonnier_eps=mv.charbonnier_eps if mv.charbonnier_eps > 0 else None,
         )
-        self.strategy = DefaultStrategy(
-            prune_opa=0.005, grow_grad2d=cfg.densify_grad_threshold, grow_scale3d=cfg.percent_dense,
-            refine_start_iter=cfg.densify_from_iter, refine_stop_iter=cfg.densify_until_iter,
-            reset_every=cfg.opacity_reset_interval, refine_every=cfg.densification_interval, verbose=False,
-        ) if cfg.densify else None
+        self.strategy = (DefaultStrategy(**cfg.densify.strategy_kwargs(), verbose=False)
+                         if cfg.densify.enabled else None)
 
     # ------------------------------------------------------------------ set-up
     def _view_silhouettes(self) -> dict[int, Tensor]:
@@ -153,16 +142,16 @@ class Trainer:
     def build_scene(self) -> RelightableScene:
         """Initial Gaussians (points3d.ply, visual hull of the training masks, or random) and a fresh MLP."""
         cfg = self.cfg
-        torch.manual_seed(cfg.seed)
-        generator = torch.Generator().manual_seed(cfg.seed)
+        torch.manual_seed(cfg.schedule.seed)
+        generator = torch.Generator().manual_seed(cfg.schedule.seed)
         views = sorted({obs.view for obs in self.lattice.observations})
-        use_ply = cfg.init in ("auto", "ply")
-        use_hull = cfg.init in ("auto", "hull")
+        use_ply = cfg.gaussians.init in ("auto", "ply")
+        use_hull = cfg.gaussians.init in ("auto", "hull")
         ply = self.lattice.root / "points3d.ply"
-        if cfg.init == "ply" and not ply.is_file():
+        if cfg.gaussians.init == "ply" and not ply.is_file():
             raise ValueError(f"config init='ply' but {ply} does not exist")
         points = initial_points(
-            num_points=cfg.num_gaussians, bounds_center=self.bounds.center, bounds_radius=self.bounds.radius,
+            num_points=cfg.gaussians.count, bounds_center=self.bounds.center, bounds_radius=self.bounds.radius,
             points3d_path=ply if use_ply else None,
             masks=torch.stack([self.view_silhouettes[v].cpu() for v in views]) if use_hull else None,
             w2c=self.lattice.viewmats[views] if use_hull else None,
@@ -171,10 +160,11 @@ class Trainer:
         )
         self.init_source = points.source
         model = GaussianModel.from_points(points.points, points.colors, points.normals, generator=generator)
-        light_init = self.calibrated_light_init() if cfg.light_init_from_data else cfg.light_init
-        return RelightableScene(model, sss_width=cfg.sss_width, light_init=light_init,
+        shading = cfg.shading
+        light_init = self.calibrated_light_init() if shading.light_init_from_data else shading.light_init
+        return RelightableScene(model, sss_width=shading.sss_width, light_init=light_init,
                                 scene_center=self.bounds.center, scene_radius=self.bounds.radius,
-                                mixed_precision=cfg.mixed_precision).to(self.device)
+                                mixed_precision=shading.mixed_precision).to(self.device)
 
     def calibrated_light_init(self, max_images: int = 64) -> float:
         """``log`` of a global light scale matched to the capture's units (Tab. 3's ``light_init`` = -1 is
@@ -192,7 +182,7 @@ class Trainer:
             intensities.append(dataset.light_intensities[sample.light].mean())
         foreground = torch.cat(values)
         if foreground.numel() == 0:
-            return self.cfg.light_init
+            return self.cfg.shading.light_init
         q99 = float(torch.quantile(foreground[:1_000_000], 0.99))
         return float(torch.log(torch.tensor(2.0 * max(q99, 1e-4)) / torch.stack(intensities).mean().clamp_min(1e-8)))
 
@@ -202,24 +192,24 @@ class Trainer:
         params = scene.gaussians.params
         fused = {"fused": True} if self.device.type == "cuda" else {}
         optimizers: dict[str, torch.optim.Optimizer] = {
-            "means": torch.optim.Adam([params["means"]], lr=cfg.position_lr_init * self.bounds.radius,
+            "means": torch.optim.Adam([params["means"]], lr=cfg.lr.position_init * self.bounds.radius,
                                       eps=1e-15, **fused),
         }
         for name, key in GAUSSIAN_LR_KEYS.items():
-            optimizers[name] = torch.optim.Adam([params[name]], lr=getattr(cfg, key), eps=1e-15, **fused)
-        optimizers["mlp"] = torch.optim.Adam(scene.mlp.parameters(), lr=cfg.sss_lr, **fused)
-        optimizers["light"] = torch.optim.Adam([scene.log_light_scale], lr=cfg.light_lr, **fused)
+            optimizers[name] = torch.optim.Adam([params[name]], lr=getattr(cfg.lr, key), eps=1e-15, **fused)
+        optimizers["mlp"] = torch.optim.Adam(scene.mlp.parameters(), lr=cfg.lr.sss, **fused)
+        optimizers["light"] = torch.optim.Adam([scene.log_light_scale], lr=cfg.lr.light, **fused)
         return optimizers
 
     def set_learning_rates(self, optimizers: dict[str, torch.optim.Optimizer], step: int) -> None:
         cfg = self.cfg
-        decay = step_decay(step, cfg.lr_decay_step, cfg.lr_decay_factor)
-        rates = {name: getattr(cfg, key) * decay for name, key in GAUSSIAN_LR_KEYS.items()}
+        decay = step_decay(step, cfg.lr.decay_step, cfg.lr.decay_factor)
+        rates = {name: getattr(cfg.lr, key) * decay for name, key in GAUSSIAN_LR_KEYS.items()}
         rates["means"] = self.bounds.radius * exponential_lr(
-            step, cfg.position_lr_init, cfg.position_lr_final, cfg.position_lr_max_steps,
-            cfg.position_lr_delay_steps, cfg.position_lr_delay_mult)
-        rates["mlp"] = cfg.sss_lr * decay
-        rates["light"] = cfg.light_lr * decay
+            step, cfg.lr.position_init, cfg.lr.position_final, cfg.lr.position_max_steps,
+            cfg.lr.position_delay_steps, cfg.lr.position_delay_mult)
+        rates["mlp"] = cfg.lr.sss * decay
+        rates["light"] = cfg.lr.light * decay
         for name, optimizer in optimizers.items():
             for group in optimizer.param_groups:
                 group["lr"] = rates[name]
@@ -232,8 +222,9 @@ class Trainer:
         multi-view pixel sampling.
         """
         cfg = self.cfg
-        generator = rng.stream_generator(cfg.seed, step, 0)
-        picks = [self.index[i] for i in seeded_epoch_indices(step, cfg.batch_size, len(self.index), cfg.seed)]
+        generator = rng.stream_generator(cfg.schedule.seed, step, 0)
+        picks = [self.index[i] for i in seeded_epoch_indices(step, cfg.schedule.batch_size, len(self.index),
+                                                             cfg.schedule.seed)]
         rgbs, masks, weights, views, lights = [], [], [], [], []
         for source_index, obs_index in picks:
             source = self.sources[source_index]
@@ -246,7 +237,7 @@ class Trainer:
         rgb = torch.stack(rgbs).to(self.device)
         host_masks = torch.stack(masks)
         mask = host_masks.to(self.device)
-        if cfg.random_background:
+        if cfg.shading.random_background:
             background = rng.rand(len(picks), 1, 1, 3, generator=generator, device=self.device)
             rgb = rgb + (1.0 - mask) * background
         views_t = torch.tensor(views, device=self.device)
@@ -261,40 +252,40 @@ class Trainer:
         """Eq. A.7 on a random subset of Gaussians: towards the batch's lights and random directions."""
         cfg = self.cfg
         g = scene.gaussians
-        generator = rng.stream_generator(cfg.seed, step, 1, self.device)
-        count = min(cfg.raytrace_gaussians, g.num_gaussians)
+        generator = rng.stream_generator(cfg.schedule.seed, step, 1, self.device)
+        count = min(cfg.raytrace.gaussians, g.num_gaussians)
         subset = rng.randperm(g.num_gaussians, generator=generator)[:count]
         with torch.no_grad():
             traced = raytraced_visibility(g.means.detach(), g.quats.detach(), g.scales.detach(),
-                                          g.opacities.detach(), light_positions, num_samples=cfg.raytrace_directions,
+                                          g.opacities.detach(), light_positions, num_samples=cfg.raytrace.directions,
                                           generator=generator, normals=g.normals.detach(), sources=subset)
         predicted = visibility_from_sh(g.visibility_sh[subset][:, None, :], traced.dirs)
-        return cfg.lambda_visibility * raytrace_visibility_loss(predicted, traced.visibility)
+        return cfg.losses.lambda_visibility * raytrace_visibility_loss(predicted, traced.visibility)
 
     def multiview_terms(self, scene: RelightableScene, render, target: TargetBatch,
                         step: int) -> dict[str, Tensor]:
         """Silhouette and depth consistency between batch views (sources) and nearby lattice views."""
         cfg = self.cfg
-        generator = rng.stream_generator(cfg.seed, step, 2)
-        candidates = torch.arange(self.union.num_views) if cfg.mv_include_unobserved_views else torch.tensor(
+        generator = rng.stream_generator(cfg.schedule.seed, step, 2)
+        candidates = torch.arange(self.union.num_views) if cfg.multiview.include_unobserved_views else torch.tensor(
             sorted(self.view_silhouettes))
         centers = self.camera_centers
         sources, targets = [], []
-        for _ in range(cfg.mv_pairs_per_step):
+        for _ in range(cfg.multiview.pairs_per_step):
             b = int(torch.randint(len(self._batch_views), (1,), generator=generator))
             view = self._batch_views[b]
             pool = candidates[candidates != view]
             if pool.numel() == 0:
                 continue
-            if cfg.mv_target_mode == "nearest-k":
+            if cfg.multiview.target_mode == "nearest-k":
                 distance = (centers[pool] - centers[view]).norm(dim=-1)
-                pool = pool[torch.argsort(distance, stable=True)[: cfg.mv_nearest_k]]
+                pool = pool[torch.argsort(distance, stable=True)[: cfg.multiview.nearest_k]]
             sources.append(b)
             targets.append(int(pool[torch.randint(pool.numel(), (1,), generator=generator)]))
         if not sources:
             return {}
         tgt = torch.tensor(targets, device=self.device)
-        factor = cfg.mv_target_downscale
+        factor = cfg.multiview.target_downscale
         tgt_width, tgt_height = max(1, self.width // factor), max(1, self.height // factor)
         tgt_K = scale_intrinsics(self.Ks[tgt], tgt_width / self.width)
         geometry = scene.render_geometry(self.viewmats[tgt], tgt_K, tgt_width, tgt_height)
@@ -305,7 +296,7 @@ class Trainer:
             for p, t in enumerate(targets)
         ])
         src = torch.tensor(sources, device=self.device)
-        uv_list = [sample_foreground_pixels(self._batch_masks[b, ..., 0], cfg.mv_pixels_per_pair, generator)
+        uv_list = [sample_foreground_pixels(self._batch_masks[b, ..., 0], cfg.multiview.pixels_per_pair, generator)
                    for b in sources]
         count = max(1, max(uv.shape[0] for uv in uv_list))
         host_uv = torch.full((len(sources), count, 2), 0.5)
@@ -320,10 +311,10 @@ class Trainer:
             self.bounds.near, self.bounds.far, self.mv_cfg, src_uv_valid=valid,
         )
         out = {}
-        if cfg.lambda_sil > 0:
-            out["mv_silhouette"] = cfg.lambda_sil * terms.silhouette
-        if cfg.lambda_depth > 0:
-            out["mv_depth"] = cfg.lambda_depth * terms.depth
+        if cfg.losses.lambda_sil > 0:
+            out["mv_silhouette"] = cfg.losses.lambda_sil * terms.silhouette
+        if cfg.losses.lambda_depth > 0:
+            out["mv_depth"] = cfg.losses.lambda_depth * terms.depth
         return out
 
     def _target_silhouette(self, view: int, height: int, width: int) -> Tensor:
@@ -341,7 +332,7 @@ class Trainer:
         Nothing here reads a value back from the device: :class:`LossLog` checks the terms later.
         """
         cfg = self.cfg
-        torch.manual_seed(cfg.seed * 1_000_003 + step)
+        torch.manual_seed(cfg.schedule.seed * 1_000_003 + step)
         self.set_learning_rates(optimizers, step)
         _, target, light_pos, light_rgb = self.draw_batch(step)
         render = scene.render(target.viewmats, target.Ks, self.width, self.height, light_pos, light_rgb)
@@ -350,16 +341,16 @@ class Trainer:
             self.strategy.step_pre_backward(scene.gaussians.params, gaussian_optimizers(optimizers),
                                             strategy_state, step, info)
         terms = image_objective(render, target, cfg, self.lpips)
-        if cfg.lambda_visibility > 0 and step % cfg.raytrace_every == 0:
+        if cfg.losses.lambda_visibility > 0 and step % cfg.raytrace.every == 0:
             terms["raytrace"] = self.raytrace_term(scene, light_pos, step)
-        if cfg.lambda_sil > 0 or cfg.lambda_depth > 0:
+        if cfg.losses.lambda_sil > 0 or cfg.losses.lambda_depth > 0:
             terms.update(self.multiview_terms(scene, render, target, step))
         total = torch.stack(list(terms.values())).sum()
         total.backward()
         for optimizer in optimizers.values():
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
-        if self.strategy is not None and scene.gaussians.num_gaussians < cfg.max_gaussians:
+        if self.strategy is not None and scene.gaussians.num_gaussians < cfg.gaussians.max_count:
             self.strategy.step_post_backward(scene.gaussians.params, gaussian_optimizers(optimizers),
                                              strategy_state, step, info, packed=False)
         values = {k: v.detach() for k, v in terms.items()}
@@ -367,54 +358,48 @@ class Trainer:
         return values
 
     # ------------------------------------------------------------------ the loop
-    def run(self, resume: bool = False) -> TrainResult:
-        """Train for ``cfg.iterations`` steps (continuing from the newest checkpoint when ``resume``)."""
+    def run(self, resume: bool = False, *, scene: RelightableScene | None = None,
+            on_step: StepCallback | None = None) -> TrainResult:
+        """Train for ``cfg.schedule.iterations`` steps (continuing from the newest checkpoint when ``resume``).
+
+        ``scene``: start from this scene instead of :meth:`build_scene` (trained in place). ``on_step`` is
+        called after every step (see :data:`StepCallback`); when it returns ``True`` the run ends there.
+        Without a ``run_dir`` nothing is written (no config, logs, checkpoints or model).
+        """
         cfg = self.cfg
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
-        start_step = 0
-        checkpoint = latest_checkpoint(self.run_dir) if resume else None
-        if resume and checkpoint is None:
-            logger.warning("%s: --resume but no checkpoint in %s: training from step 0", self.run_dir,
-                           self.run_dir / "checkpoints")
-        if checkpoint is not None:
-            loaded = load_checkpoint(checkpoint)
-            scene = scene_from_tensors(loaded.scene, cfg).to(self.device)
-            optimizers = self.build_optimizers(scene)
-            for name, optimizer in optimizers.items():
-                optimizer.load_state_dict(loaded.optimizers[name])
-            strategy_state = self._initial_strategy_state()
-            strategy_state.update({k: (v.to(self.device) if torch.is_tensor(v) else v)
-                                   for k, v in loaded.strategy.items()})
-            start_step = loaded.step
-            logger.info("%s: resuming from step %d (%s)", self.run_dir, start_step, checkpoint)
-            self.init_source = loaded.extra.get("init_source", "checkpoint")
-            history = loaded.extra.get("history", [])
-            elapsed = float(loaded.extra.get("seconds", 0.0))
-        else:
-            scene = self.build_scene()
-            optimizers = self.build_optimizers(scene)
-            strategy_state = self._initial_strategy_state()
-            history, elapsed = [], 0.0
+        if resume and (scene is not None or self.run_dir is None):
+            raise ValueError("Trainer.run: resuming needs a run_dir and no starting scene")
+        earlier_run = self.run_dir is not None and (self.run_dir / "config.json").is_file()
+        if self.run_dir is not None:
+            if resume:
+                check_resumable(self.run_dir, cfg)
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
+        scene, optimizers, strategy_state, start_step, history, elapsed = self._start(resume, scene, earlier_run)
         if self.strategy is not None:
             self.strategy.check_sanity(scene.gaussians.params, gaussian_optimizers(optimizers))
-        writer = _summary_writer(self.run_dir / "tb")
+        self.scene = scene
+        writer = None if self.run_dir is None else _summary_writer(self.run_dir / "tb")
         started = time.perf_counter() - elapsed
         values: dict[str, float] = {"total": float("nan")}
+        done = start_step
         self.loss_log = LossLog()
-        bar = tqdm(range(start_step, cfg.iterations), initial=start_step, total=cfg.iterations,
+        iterations = cfg.schedule.iterations
+        bar = tqdm(range(start_step, iterations), initial=start_step, total=iterations,
                    disable=not self.show_progress, desc="train", dynamic_ncols=True)
         for step in bar:
             try:
-                self.loss_log.record(step, self.training_step(scene, optimizers, strategy_state, step))
+                terms = self.training_step(scene, optimizers, strategy_state, step)
+                self.loss_log.record(step, terms)
             except Exception:
                 self.loss_log.flush()  # a non-finite loss before the failure is the better diagnosis
                 raise
             done = step + 1
-            checkpoint_due = done % cfg.checkpoint_every == 0 and done < cfg.iterations
-            if done % cfg.log_every == 0 or done == cfg.iterations or checkpoint_due:
+            last = (on_step is not None and bool(on_step(done, scene, terms))) or done == iterations
+            checkpoint_due = (self.run_dir is not None and done % cfg.runtime.checkpoint_every == 0 and not last)
+            if done % cfg.runtime.log_every == 0 or last or checkpoint_due:
                 values = self.loss_log.flush()
-            if done % cfg.log_every == 0 or done == cfg.iterations:
+            if done % cfg.runtime.log_every == 0 or last:
                 record = {"step": done, "gaussians": scene.gaussians.num_gaussians,
                           "light_scale": float(scene.light_scale.detach()), **values}
                 history.append(record)
@@ -423,26 +408,61 @@ class Trainer:
                     for key, value in record.items():
                         if key != "step":
                             writer.add_scalar(f"train/{key}", value, done)
-            if writer is not None and (done % cfg.image_log_every == 0 or done == cfg.iterations):
+            if writer is not None and (done % cfg.runtime.image_log_every == 0 or last):
                 self._log_images(writer, scene, done)
             if checkpoint_due:
                 save_checkpoint(self.run_dir, done, scene_tensors(scene), optimizers, strategy_state,
                                 {"init_source": self.init_source, "history": history,
                                  "seconds": time.perf_counter() - started})
-        seconds = time.perf_counter() - started
+            if last:
+                break
+        bar.close()
+        result = TrainResult(steps=done, seconds=time.perf_counter() - started,
+                             num_gaussians=scene.gaussians.num_gaussians, final_loss=values["total"],
+                             history=history)
         if writer is not None:
             writer.close()
+        if self.run_dir is not None:
+            self._save_outputs(scene, result)
+        return result
+
+    def _start(self, resume: bool, scene: RelightableScene | None, earlier_run: bool) -> tuple:
+        """The scene, optimisers, strategy state, first step, history and seconds already spent.
+
+        Resuming a folder that an earlier run left without a checkpoint says so (a new folder is silent).
+        """
+        found = resume_checkpoint(self.run_dir) if resume else None
+        if resume and found is None and earlier_run:
+            logger.warning("%s: --resume but no checkpoint in %s: training from step 0", self.run_dir,
+                           self.run_dir / "checkpoints")
+        if found is None:
+            if scene is None:
+                scene = self.build_scene()
+            else:
+                self.init_source = "given"
+            return scene, self.build_optimizers(scene), self._initial_strategy_state(), 0, [], 0.0
+        checkpoint, loaded = found
+        scene = scene_from_tensors(loaded.scene, self.cfg.shading).to(self.device)
+        optimizers = self.build_optimizers(scene)
+        for name, optimizer in optimizers.items():
+            optimizer.load_state_dict(loaded.optimizers[name])
+        strategy_state = self._initial_strategy_state()
+        strategy_state.update({k: (v.to(self.device) if torch.is_tensor(v) else v)
+                               for k, v in loaded.strategy.items()})
+        logger.info("%s: resuming from step %d (%s)", self.run_dir, loaded.step, checkpoint)
+        self.init_source = loaded.extra.get("init_source", "checkpoint")
+        return (scene, optimizers, strategy_state, loaded.step, loaded.extra.get("history", []),
+                float(loaded.extra.get("seconds", 0.0)))
+
+    def _save_outputs(self, scene: RelightableScene, result: TrainResult) -> None:
+        """``model.safetensors`` and ``train_summary.json`` of a finished run."""
         save_scene(self.run_dir / "model.safetensors", scene)
-        result = TrainResult(steps=cfg.iterations, seconds=seconds, num_gaussians=scene.gaussians.num_gaussians,
-                             final_loss=values["total"], history=history)
         atomic_write_json(self.run_dir / "train_summary.json", {
             "steps": result.steps, "seconds": round(result.seconds, 3), "num_gaussians": result.num_gaussians,
             "final_loss": result.final_loss, "init_source": self.init_source, "device": str(self.device),
             "images": {f"source_{i}": len(s.dataset) for i, s in enumerate(self.sources)},
-            "history": history,
+            "history": result.history,
         })
-        self.scene = scene
-        return result
 
     def _initial_strategy_state(self) -> dict:
         if self.strategy is None:
@@ -467,34 +487,3 @@ def _summary_writer(path: Path):
         return None
     return SummaryWriter(str(path))
 
-
-def scene_tensors(scene: RelightableScene) -> dict[str, Tensor]:
-    """All scene tensors by ``state_dict`` name (Gaussians, MLP, light scale)."""
-    return {k: v.detach() for k, v in scene.state_dict().items()}
-
-
-def scene_from_tensors(tensors: dict[str, Tensor], cfg: TrainConfig) -> RelightableScene:
-    """Rebuild a scene from :func:`scene_tensors` (Gaussian count taken from the tensors)."""
-    prefix = "gaussians.params."
-    model = GaussianModel.from_state_tensors({k[len(prefix):]: v for k, v in tensors.items()
-                                              if k.startswith(prefix)})
-    scene = RelightableScene(model, sss_width=cfg.sss_width, light_init=cfg.light_init,
-                             mixed_precision=cfg.mixed_precision)
-    scene.load_state_dict(tensors)
-    return scene
-
-
-def save_scene(path: Path, scene: RelightableScene) -> Path:
-    """The trained scene as one safetensors file."""
-    return atomic_save_safetensors(path, scene_tensors(scene), metadata={"format": "diamond-sss-scene-v1"})
-
-
-def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[RelightableScene, TrainConfig]:
-    """The trained scene and configuration of a run folder."""
-    from diamond_sss.training.config import load_run_config
-
-    cfg = load_run_config(run_dir)
-    path = Path(run_dir) / "model.safetensors"
-    if not path.is_file():
-        raise ValueError(f"{run_dir}: no trained model ({path} is missing; is the run finished?)")
-    return scene_from_tensors(load_safetensors(path), cfg).to(device), cfg

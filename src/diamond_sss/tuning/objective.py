@@ -1,9 +1,9 @@
 """The objective of a trial: train a short reconstruction, report validation PSNR to the pruner.
 
 Each trial resolves ``preset`` + fixed ``overrides`` + the sampled parameters (schedule keys scaled, see
-:func:`~diamond_sss.tuning.space.scale_schedule`), drives :meth:`Trainer.training_step` for ``iterations``
-steps and, every ``report_every`` steps and at the end, reports the mean validation PSNR (dB) so a median
-pruner can stop it. A non-finite loss or render raises :class:`FloatingPointError`: the study records the
+:func:`~diamond_sss.training.config.scale_schedule`), trains with :meth:`Trainer.run` (no run folder: a trial
+writes no checkpoint, log or model) for ``iterations`` steps and, from the trainer's step callback every
+``report_every`` steps and at the end, reports the mean validation PSNR (dB) so a median pruner can stop it. A non-finite loss or render raises :class:`FloatingPointError`: the study records the
 trial as failed (with the reason in the user attribute ``failure``) and goes on.
 """
 
@@ -17,19 +17,18 @@ import socket
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import optuna
 
-from diamond_sss.rendering.relightable import RelightableScene
-from diamond_sss.training.config import TrainConfig, make_config
+from diamond_sss.scene.model import RelightableScene
+from diamond_sss.training.config import TrainConfig, canonical_key, scale_schedule
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.tuning.space import (
     SEARCH_SPACE,
     ParamRange,
     default_schedule_scale,
-    scale_schedule,
     suggest_params,
 )
 from diamond_sss.tuning.validation import TuneData, validation_psnr
@@ -49,7 +48,7 @@ class ObjectiveSettings:
         overrides: fixed TrainConfig values of every trial (e.g. ``num_gaussians``, ``device``).
         iterations: training steps of a trial.
         report_every: steps between validation PSNR reports (plus one at the end).
-        schedule_scale: factor on iteration-valued keys; ``None``: ``iterations / TrainConfig.iterations``.
+        schedule_scale: factor on iteration-valued keys; ``None``: ``iterations / schedule.iterations`` (10000).
     """
 
     preset: str = "diamond"
@@ -63,7 +62,7 @@ class ObjectiveSettings:
             raise ValueError(f"iterations must be positive, got {self.iterations}")
         if self.report_every <= 0:
             raise ValueError(f"report_every must be positive, got {self.report_every}")
-        if "iterations" in self.overrides:
+        if any(canonical_key(key) == "schedule.iterations" for key in self.overrides):
             raise ValueError("set the trial length with 'iterations', not in the overrides")
 
     @property
@@ -75,15 +74,15 @@ class ObjectiveSettings:
         record = {
             "preset": self.preset, "iterations": self.iterations, "report_every": self.report_every,
             "schedule_scale": self.scale,
-            "overrides": {k: v for k, v in self.overrides.items() if k != "device"},
+            "overrides": {k: v for k, v in self.overrides.items() if canonical_key(k) != "runtime.device"},
             "data": data.describe(), "space": {k: [r.low, r.high, r.log, r.step] for k, r in space.items()},
         }
         return json.loads(json.dumps(record))
 
     def trial_config(self, params: Mapping[str, Any]) -> TrainConfig:
         """The configuration a trial with sampled ``params`` (full-schedule units) trains with."""
-        return make_config(self.preset, overrides={**self.overrides, **scale_schedule(params, self.scale),
-                                                   "iterations": self.iterations})
+        scaled = scale_schedule(params, self.scale, floors={})
+        return make_config(self.preset, overrides={**self.overrides, **scaled, "iterations": self.iterations})
 
 
 class Objective:
@@ -92,15 +91,13 @@ class Objective:
     Args:
         data: training and validation images.
         settings: how trials train.
-        work_dir: parent of the trials' run folders (a trial writes no checkpoint, log or model).
         space: the searched keys.
     """
 
-    def __init__(self, data: TuneData, settings: ObjectiveSettings, work_dir: Path,
+    def __init__(self, data: TuneData, settings: ObjectiveSettings,
                  space: Mapping[str, ParamRange] = SEARCH_SPACE) -> None:
         self.data = data
         self.settings = settings
-        self.work_dir = Path(work_dir)
         self.space = space
         self._initial_scenes: dict[tuple, RelightableScene] = {}
 
@@ -120,26 +117,20 @@ class Objective:
     def initial_scene(self, trainer: Trainer) -> RelightableScene:
         """A copy of the trainer's initial scene, built once per worker (no searched key changes it)."""
         cfg = trainer.cfg
-        key = (cfg.seed, cfg.init, cfg.num_gaussians, cfg.sss_width, cfg.light_init, cfg.mixed_precision,
-               str(trainer.device))
+        key = (cfg.schedule.seed, cfg.gaussians.init, cfg.gaussians.count, cfg.shading.sss_width,
+               cfg.shading.light_init, cfg.shading.mixed_precision, str(trainer.device))
         if key not in self._initial_scenes:
             self._initial_scenes[key] = trainer.build_scene()
         return copy.deepcopy(self._initial_scenes[key])
 
     def train_and_score(self, trial: optuna.Trial, cfg: TrainConfig) -> float:
         """Train ``cfg`` and report; raises ``TrialPruned`` when the pruner says so."""
-        trainer = Trainer(cfg, [ImageSource(self.data.train)], self.work_dir / f"trial_{trial.number:05d}",
-                          show_progress=False)
-        scene = self.initial_scene(trainer)
-        optimizers = trainer.build_optimizers(scene)
-        strategy_state = {} if trainer.strategy is None else trainer.strategy.initialize_state(
-            scene_scale=trainer.bounds.radius)
-        value = math.nan
-        for step in range(cfg.iterations):
-            trainer.training_step(scene, optimizers, strategy_state, step)
-            done = step + 1
-            if done % self.settings.report_every and done != cfg.iterations:
-                continue
+        trainer = Trainer(cfg, [ImageSource(self.data.train)], None, show_progress=False)
+        reported = {"value": math.nan}
+
+        def report(done: int, scene: RelightableScene, terms: dict) -> bool:
+            if done % self.settings.report_every and done != cfg.schedule.iterations:
+                return False
             value = validation_psnr(scene, self.data.validation)
             if not math.isfinite(value):
                 raise FloatingPointError(f"validation PSNR is {value} at step {done}")
@@ -147,4 +138,8 @@ class Objective:
             trial.set_user_attr("gaussians", scene.gaussians.num_gaussians)
             if trial.should_prune():
                 raise optuna.TrialPruned(f"pruned at step {done} with validation PSNR {value:.3f} dB")
-        return value
+            reported["value"] = value
+            return False
+
+        trainer.run(scene=self.initial_scene(trainer), on_step=report)
+        return reported["value"]

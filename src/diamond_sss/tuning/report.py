@@ -14,13 +14,14 @@ from typing import Any
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
-from diamond_sss.training.config import make_config
+from diamond_sss.training.config import canonical_key
+from diamond_sss.training.overrides import make_config
 from diamond_sss.tuning.space import BEST_PRESET, ORIGINAL_PRESET, SEARCH_SPACE, ParamRange, preset_params
 from diamond_sss.utils.io import atomic_write, atomic_write_json, atomic_write_text
 
 # keys of a trial's configuration that belong to the run, not to the method (left to the preset / CLI)
-RUN_KEYS = ("iterations", "seed", "device", "checkpoint_every", "log_every", "image_log_every",
-            "lpips_weights")
+RUN_KEYS = ("schedule.iterations", "schedule.seed", "runtime.device", "runtime.checkpoint_every",
+            "runtime.log_every", "runtime.image_log_every", "runtime.lpips_weights")
 
 
 def format_value(value: Any) -> str:
@@ -83,10 +84,10 @@ def best_config(study: optuna.Study, space: Mapping[str, ParamRange] = SEARCH_SP
     searched values in full-schedule units, so it trains the same method whatever ``--preset`` is given.
     """
     settings = study.user_attrs.get("settings", {})
-    overrides = {k: v for k, v in settings.get("overrides", {}).items() if k not in RUN_KEYS}
+    overrides = {k: v for k, v in settings.get("overrides", {}).items() if canonical_key(k) not in RUN_KEYS}
     best = {key: study.best_trial.params[key] for key in space if key in study.best_trial.params}
-    config = make_config(settings.get("preset", BEST_PRESET), overrides={**overrides, **best}).to_dict()
-    return {key: value for key, value in config.items() if key not in RUN_KEYS}
+    config = make_config(settings.get("preset", BEST_PRESET), overrides={**overrides, **best})
+    return {key: value for key, value in config.flat().items() if canonical_key(key) not in RUN_KEYS}
 
 
 def save_parallel_coordinate(study: optuna.Study, path: Path,

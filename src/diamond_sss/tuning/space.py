@@ -1,10 +1,11 @@
 """The search space of supplement Sec. A.3 (Fig. 5 / Tab. 4), declared once.
 
-Every key is a :class:`~diamond_sss.training.config.TrainConfig` field. Ranges bracket both columns of
+Every key is a :class:`~diamond_sss.training.config.TrainConfig` field by its flat name (the name of the
+trial parameter in every study, old and new). Ranges bracket both columns of
 Tab. 4 ("Original" = the ``sss3dgs`` preset, "Best" = the ``diamond`` preset), so both presets are points
-of the space and can be enqueued as trials. Iteration-valued keys (:data:`SCHEDULE_KEYS`) are given for
-the full schedule of ``TrainConfig.iterations`` steps; a study with shorter trials scales them by
-``iterations / TrainConfig.iterations`` (:func:`scale_schedule`).
+of the space and can be enqueued as trials. Iteration-valued keys are given for the full schedule of
+``schedule.iterations`` steps; a study with shorter trials scales them by
+``iterations / schedule.iterations`` (:func:`~diamond_sss.training.config.scale_schedule`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ from typing import Any
 
 import optuna
 
-from diamond_sss.training.config import PRESETS, TrainConfig, field_types, make_config
+from diamond_sss.training.config import FIELDS, FLAT_KEYS, PRESETS, TrainConfig, canonical_key, field_types
+from diamond_sss.training.overrides import make_config
 
 ORIGINAL_PRESET = "sss3dgs"
 BEST_PRESET = "diamond"
@@ -56,18 +58,14 @@ SEARCH_SPACE: dict[str, ParamRange] = {
     "densify_grad_threshold": ParamRange(0.0001, 0.002, log=True),
 }
 
-SCHEDULE_KEYS = ("densification_interval", "opacity_reset_interval", "densify_from_iter",
-                 "densify_until_iter")
-
-
 def distributions(
         space: Mapping[str, ParamRange] = SEARCH_SPACE) -> dict[str, optuna.distributions.BaseDistribution]:
     """Optuna distributions of ``space`` by key (types from ``TrainConfig``); unknown keys are errors."""
     types = field_types()
-    unknown = sorted(set(space) - set(types))
+    unknown = sorted(set(space) - set(FLAT_KEYS) - set(FIELDS))
     if unknown:
         raise ValueError(f"search space keys are not TrainConfig fields: {unknown}")
-    return {key: spec.distribution(types[key]) for key, spec in space.items()}
+    return {key: spec.distribution(types[canonical_key(key)]) for key, spec in space.items()}
 
 
 def suggest_params(trial: optuna.Trial, space: Mapping[str, ParamRange] = SEARCH_SPACE) -> dict[str, Any]:
@@ -86,19 +84,11 @@ def preset_params(preset: str, space: Mapping[str, ParamRange] = SEARCH_SPACE) -
     if preset not in PRESETS:
         raise ValueError(f"unknown preset '{preset}'; presets: {sorted(PRESETS)}")
     config = make_config(preset)
-    return {key: getattr(config, key) for key in space}
+    return {key: config.get(key) for key in space}
 
 
 def default_schedule_scale(iterations: int) -> float:
-    """``iterations / TrainConfig.iterations``: the factor that maps Tab. 4 schedules onto shorter trials."""
+    """``iterations / schedule.iterations``: the factor that maps Tab. 4 schedules onto shorter trials."""
     if iterations <= 0:
         raise ValueError(f"iterations must be positive, got {iterations}")
-    return iterations / TrainConfig.iterations
-
-
-def scale_schedule(params: Mapping[str, Any], scale: float) -> dict[str, Any]:
-    """``params`` with every :data:`SCHEDULE_KEYS` value multiplied by ``scale`` (rounded, at least 1)."""
-    if scale <= 0:
-        raise ValueError(f"schedule scale must be positive, got {scale}")
-    return {key: max(1, round(value * scale)) if key in SCHEDULE_KEYS else value
-            for key, value in params.items()}
+    return iterations / TrainConfig().schedule.iterations

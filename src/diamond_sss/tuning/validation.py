@@ -22,7 +22,7 @@ from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.regimes import select_regime
 from diamond_sss.evaluation.evaluate import render_observation
 from diamond_sss.evaluation.metrics import psnr
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.model import RelightableScene
 
 
 def default_validation_count(images: int) -> int:

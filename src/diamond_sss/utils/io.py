@@ -11,13 +11,24 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
+
+from diamond_sss.errors import DamagedFileError, DataError
+
+
+def default_mode(directory: bool = False) -> int:
+    """The mode a plain ``open(path, "w")`` (``0o666``) or ``mkdir`` (``0o777``) gives, less the umask."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return (0o777 if directory else 0o666) & ~umask
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path:
     """Call ``write(tmp_path)`` on a temporary file beside ``path``, then ``os.replace`` it into place.
 
-    A crash leaves either the old file or the new one, never half of it. Parent folders are created.
+    A crash leaves either the old file or the new one, never half of it. Parent folders are created. The
+    file gets the mode a plain write would give it (not ``mkstemp``'s 0600).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -26,6 +37,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path
     tmp_path = Path(tmp)
     try:
         write(tmp_path)
+        os.chmod(tmp_path, default_mode())
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
@@ -50,14 +62,50 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
 
 def atomic_save_safetensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor],
                             metadata: dict[str, str] | None = None) -> Path:
-    """Save tensors (moved to CPU, made contiguous) to a safetensors file atomically."""
+    """Save tensors (moved to CPU, made contiguous) to a safetensors file atomically.
+
+    The written file is re-opened (header and sizes parsed, keys compared) before it replaces ``path``.
+    """
     cpu = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
-    return atomic_write(path, lambda tmp: save_file(cpu, str(tmp), metadata=metadata))
+
+    def write(tmp: Path) -> None:
+        save_file(cpu, str(tmp), metadata=metadata)
+        verify_safetensors(tmp, set(cpu), name=Path(path))
+
+    return atomic_write(path, write)
+
+
+def verify_safetensors(path: str | os.PathLike, keys: set[str], name: str | os.PathLike | None = None) -> None:
+    """Raise :class:`DamagedFileError` unless ``path`` opens as safetensors holding exactly ``keys``."""
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            found = set(handle.keys())
+    except (SafetensorError, OSError) as exc:
+        raise DamagedFileError(f"{name or path}: written safetensors file does not read back ({exc})") from exc
+    if found != keys:
+        raise DamagedFileError(f"{name or path}: written safetensors file holds keys {sorted(found)}, "
+                               f"expected {sorted(keys)}")
 
 
 def load_safetensors(path: str | os.PathLike) -> dict[str, torch.Tensor]:
-    """Load a safetensors file to CPU tensors (never a pickle)."""
-    return load_file(str(path), device="cpu")
+    """Load a safetensors file to CPU tensors (never a pickle); a damaged file raises naming it."""
+    if not Path(path).is_file():
+        raise DataError(f"{path}: file is missing")
+    try:
+        return load_file(str(path), device="cpu")
+    except (SafetensorError, OSError) as exc:
+        raise DamagedFileError(f"{path}: damaged or truncated safetensors file ({exc})") from exc
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """Parse a JSON file; a missing or corrupt file raises a :class:`DataError` naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: file is missing")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DamagedFileError(f"{path}: damaged or invalid JSON ({exc})") from exc
 
 
 def sha256_bytes(data: bytes) -> str:

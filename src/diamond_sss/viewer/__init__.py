@@ -3,17 +3,17 @@
 from diamond_sss.viewer.frame import (
     CHANNELS,
     ViewSettings,
-    intrinsics_from_fov,
     light_from_angles,
     render_frame,
+    view_intrinsics,
     viser_camera_to_w2c,
 )
 
 __all__ = [
     "CHANNELS",
     "ViewSettings",
-    "intrinsics_from_fov",
     "light_from_angles",
     "render_frame",
+    "view_intrinsics",
     "viser_camera_to_w2c",
 ]

@@ -14,10 +14,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from diamond_sss.data.conventions import intrinsics_from_fov
 from diamond_sss.data.images import to_srgb8
 from diamond_sss.evaluation.evaluate import DECOMPOSITION, decomposition_maps
 from diamond_sss.evaluation.figures import to_display
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.model import RelightableScene
 
 CHANNELS = ("radiance", *DECOMPOSITION)
 """What the viewer can show: the shaded image or one map of the decomposition."""
@@ -54,15 +55,14 @@ def viser_camera_to_w2c(wxyz: np.ndarray, position: np.ndarray) -> Tensor:
     return w2c.float()
 
 
-def intrinsics_from_fov(fov_y: float, aspect: float, height: int) -> tuple[Tensor, int, int]:
-    """Pinhole ``K [3,3]`` (square pixels, centred principal point), width and height for a vertical field of view
-    ``fov_y`` (radians), an aspect ratio ``width / height`` and an image height in pixels."""
+def view_intrinsics(fov_y: float, aspect: float, height: int) -> tuple[Tensor, int, int]:
+    """Pinhole ``K [3,3]`` (:func:`~diamond_sss.data.conventions.intrinsics_from_fov`, square pixels), width and
+    height of the browser's view: vertical field of view ``fov_y`` (radians), aspect ratio ``width / height``,
+    image height in pixels."""
     if not 0.0 < fov_y < math.pi:
         raise ValueError(f"the vertical field of view must be in (0, pi) radians, got {fov_y}")
     width = max(1, round(height * aspect))
-    focal = 0.5 * height / math.tan(0.5 * fov_y)
-    K = torch.tensor([[focal, 0.0, 0.5 * width], [0.0, focal, 0.5 * height], [0.0, 0.0, 1.0]])
-    return K, width, height
+    return intrinsics_from_fov(None, width, height, fov_y), width, height
 
 
 def light_from_angles(center: Tensor, radius: float, settings: ViewSettings) -> Tensor:

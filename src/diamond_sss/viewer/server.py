@@ -7,21 +7,25 @@ re-rendered only when the client's camera or the GUI changed.
 
 from __future__ import annotations
 
+import ipaddress
+import logging
 import time
 from pathlib import Path
 
 import numpy as np
 import viser
 
-from diamond_sss.rendering.relightable import RelightableScene
+from diamond_sss.scene.model import RelightableScene
 from diamond_sss.viewer.frame import (
     CHANNELS,
     ViewSettings,
-    intrinsics_from_fov,
     light_from_angles,
     render_frame,
+    view_intrinsics,
     viser_camera_to_w2c,
 )
+
+logger = logging.getLogger(__name__)
 
 MATERIALS = {"roughness": 0.5, "metallic": 0.0, "subsurface": 0.5}
 """Materials the GUI can override, with the slider's initial value."""
@@ -90,7 +94,7 @@ class SceneViewer:
 
     def frame(self, wxyz: np.ndarray, position: np.ndarray, fov_y: float, aspect: float) -> np.ndarray:
         """The image a client with this camera sees now (uint8 ``[H,W,3]``)."""
-        K, width, height = intrinsics_from_fov(fov_y, aspect, int(self.resolution.value))
+        K, width, height = view_intrinsics(fov_y, aspect, int(self.resolution.value))
         return render_frame(
             self.scene, viser_camera_to_w2c(wxyz, position), K, width, height, self.settings()
         )
@@ -125,22 +129,40 @@ class SceneViewer:
         client.camera.look_at = tuple(center)
 
 
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (a name or an address) is reachable only from this machine."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def viewer_url(host: str, port: int) -> str:
+    """The URL of a server bound to ``host``:``port`` (IPv6 addresses in brackets)."""
+    return f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
+
+
 def serve(
     run: Path,
     *,
-    host: str = "0.0.0.0",
+    host: str = "127.0.0.1",
     port: int = 8080,
     resolution: int = 256,
     device: str = "auto",
     fps: float = 30.0,
 ) -> None:
     """Serve ``run`` at ``http://host:port`` until interrupted (Ctrl-C)."""
-    from diamond_sss.training.trainer import load_scene, resolve_device
+    from diamond_sss.training.run_folder import load_scene
+    from diamond_sss.utils.device import resolve_device
 
     scene, _ = load_scene(Path(run), resolve_device(device))
+    if not is_loopback(host):
+        logger.warning("viewer listens on %s: anyone who can reach this machine on port %d can drive it", host, port)
     server = viser.ViserServer(host=host, port=port)
     viewer = SceneViewer(server, scene, resolution)
-    print(f"viewer of {run} at http://localhost:{server.get_port()} (Ctrl-C to stop)")
+    print(f"viewer of {run} at {viewer_url(host, server.get_port())} (Ctrl-C to stop)")
     try:
         while True:
             if viewer.refresh() == 0:

@@ -1,4 +1,4 @@
-"""Noise schedules and the deterministic DDIM sampling loop (eta = 0), on diffusers' schedulers."""
+"""What the diffusion pipelines share: the deterministic DDIM loop (eta = 0) and their one output type."""
 
 from __future__ import annotations
 
@@ -6,47 +6,23 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-from diffusers import DDIMScheduler, DDPMScheduler
+from diffusers import DDIMScheduler
 from torch import Tensor
 
 
-@dataclass(frozen=True)
-class SchedulerConfig:
-    """Training noise schedule: ``num_train_timesteps`` steps of betas from ``beta_start`` to ``beta_end``."""
+@dataclass
+class PipelineOutput:
+    """Images made by a diffusion pipeline, float32 on the CPU.
 
-    num_train_timesteps: int = 1000
-    beta_start: float = 0.00085
-    beta_end: float = 0.012
-    beta_schedule: str = "scaled_linear"
-    prediction_type: str = "v_prediction"
-    rescale_betas_zero_snr: bool = True
+    ``rgb [N,H,W,3]`` linear premultiplied colour in ``[0, 1]``; ``alpha [N,H,W,1]`` its coverage, or ``None``
+    where the pipeline makes none (relighting keeps the source image's mask).
+    """
 
-    def kwargs(self) -> dict:
-        return {
-            "num_train_timesteps": self.num_train_timesteps,
-            "beta_start": self.beta_start,
-            "beta_end": self.beta_end,
-            "beta_schedule": self.beta_schedule,
-            "prediction_type": self.prediction_type,
-            "rescale_betas_zero_snr": self.rescale_betas_zero_snr,
-        }
-
-
-def make_ddpm_scheduler(config: SchedulerConfig) -> DDPMScheduler:
-    """Training scheduler (``add_noise`` and ``alphas_cumprod``)."""
-    return DDPMScheduler(**config.kwargs(), clip_sample=False)
-
-
-def make_ddim_scheduler(config: SchedulerConfig) -> DDIMScheduler:
-    """Sampling scheduler: ``trailing`` spacing (the first step starts at pure noise, zero terminal SNR) and a
-    last step that lands on the clean prediction."""
-    return DDIMScheduler(
-        **config.kwargs(), clip_sample=False, set_alpha_to_one=True, timestep_spacing="trailing"
-    )
+    rgb: Tensor
+    alpha: Tensor | None = None
 
 
 DenoiseFn = Callable[[Tensor, Tensor], Tensor]
-
 
 @torch.no_grad()
 def ddim_sample(

@@ -12,6 +12,9 @@ from torch import Tensor
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.errors import DataError
 
+MASK_THRESHOLD = 0.5
+"""A pixel belongs to the object where its mask exceeds this."""
+
 
 class GeometryError(DataError):
     """No usable geometry for a view (missing maps, run folder or model path): bad input, a :class:`DataError`."""
@@ -61,3 +64,30 @@ def normals_from_nearness(nearness: Tensor, mask: Tensor) -> Tensor:
     grad_y = (padded[2:, 1:-1] - padded[:-2, 1:-1]) * 0.5
     normals = torch.stack([-grad_x, -grad_y, -torch.ones_like(grad_x)], dim=-1)
     return F.normalize(normals, dim=-1) * keep
+
+
+def normalized_nearness(disparity: Tensor, mask: Tensor) -> Tensor:
+    """Scale a disparity-like map ``[...,H,W,1]`` to [0, 1] over ``mask > 0.5`` (0 outside; 1 = nearest)."""
+    keep = mask > MASK_THRESHOLD
+    flat_d = disparity.flatten(-3)
+    flat_k = keep.flatten(-3)
+    big = torch.finfo(disparity.dtype).max
+    low = torch.where(flat_k, flat_d, big).amin(-1)
+    high = torch.where(flat_k, flat_d, -big).amax(-1)
+    shape = disparity.shape[:-3] + (1, 1, 1)
+    low, high = low.reshape(shape), high.reshape(shape)
+    scaled = (disparity - low) / (high - low).clamp_min(1e-8)
+    return torch.where(keep, scaled.clamp(0.0, 1.0), torch.zeros_like(scaled))
+
+
+def depth_to_nearness(depth: Tensor, mask: Tensor) -> Tensor:
+    """Camera-z depth ``[...,H,W,1]`` (0 = background) -> normalised nearness (see module doc)."""
+    keep = (mask > MASK_THRESHOLD) & (depth > 0)
+    disparity = torch.where(keep, 1.0 / depth.clamp_min(1e-8), torch.zeros_like(depth))
+    return normalized_nearness(disparity, keep.to(depth.dtype))
+
+
+def world_to_camera_normals(normals_world: Tensor, w2c: Tensor) -> Tensor:
+    """Rotate world normals ``[B,H,W,3]`` into each camera's OpenCV frame with ``w2c [B,4,4]``."""
+    rotated = torch.einsum("bij,bhwj->bhwi", w2c[:, :3, :3].to(normals_world), normals_world)
+    return F.normalize(rotated, dim=-1, eps=1e-8)

@@ -19,11 +19,9 @@ from diamond_sss.diffusion.geometry.base import (
     GeometryError,
     GeometryMaps,
     GeometrySource,
-    normals_from_nearness,
-)
-from diamond_sss.diffusion.relight.conditioning import (
     depth_to_nearness,
     normalized_nearness,
+    normals_from_nearness,
     world_to_camera_normals,
 )
 
@@ -72,7 +70,7 @@ class RenderedGeometry(GeometrySource):
         self._scene = None
 
     def maps(self, dataset: OLATDataset, view: int, image: Tensor, mask: Tensor) -> GeometryMaps:
-        from diamond_sss.training.trainer import load_scene
+        from diamond_sss.training.run_folder import load_scene
 
         if self._scene is None:
             self._scene = load_scene(self.run, self.device)[0].eval()

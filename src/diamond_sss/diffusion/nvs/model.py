@@ -12,110 +12,24 @@ sample at sampling time. Space: ``pixel`` (RGBA in ``[-1, 1]``, the small offlin
 
 from __future__ import annotations
 
-import json
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from diffusers import AutoencoderKL, DDIMScheduler, DDPMScheduler, UNet2DConditionModel
+from diffusers import AutoencoderKL, DDPMScheduler, UNet2DConditionModel
 from torch import Tensor, nn
 
 from diamond_sss.data.conventions import scale_intrinsics
+from diamond_sss.diffusion.common.model_io import CONFIG_NAME, load_weights, read_model_config, save_model
+from diamond_sss.diffusion.common.schedulers import make_ddpm_scheduler
+from diamond_sss.diffusion.nvs.config import NVSConfig
 from diamond_sss.diffusion.nvs.layers import ConditioningSlot, graft_free3d_layers, set_layer_checkpointing
 from diamond_sss.diffusion.nvs.rays import RELATIVE_POSE_CHANNELS, ray_embedding, relative_spherical_pose
-from diamond_sss.diffusion.nvs.warp import WARP_CHANNELS, forward_warp, resize_depth
+from diamond_sss.diffusion.nvs.warp import forward_warp, resize_depth
 from diamond_sss.utils import rng
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
 
-CONFIG_NAME = "config.json"
-WEIGHTS_NAME = "model.safetensors"
-
-
-@dataclass
-class NVSConfig:
-    """Architecture and noise schedule of the novel-view model.
-
-    ``beta_schedule="scaled_linear"`` is the LDM/Free3D "linear" schedule (betas linear in sqrt space,
-    ``0.00085 -> 0.012`` over 1000 steps). ``warp_hint`` adds the geometric warp hint to the UNet input
-    (pixel space only); its reference image and depth are used at ``warp_supersample`` times the image size,
-    so surfaces magnified by the new view leave no cracks. ``hint_residual`` denoises ``x0 - m w`` instead
-    of ``x0`` (``w`` the warped reference in model space, ``m`` its validity).
-    """
-
-    space: str = "pixel"
-    image_size: int = 32
-    image_channels: int = 4
-    latent_channels: int = 4
-    latent_scale: float = 0.18215
-    vae_path: str | None = None
-    block_out_channels: tuple[int, ...] = (32, 64, 64)
-    down_block_types: tuple[str, ...] = ("DownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D")
-    up_block_types: tuple[str, ...] = ("CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D")
-    layers_per_block: int = 1
-    attention_head_dim: int = 8
-    norm_num_groups: int = 8
-    cross_attention_dim: int = 64
-    embed_dim: int = 64
-    encoder_channels: tuple[int, ...] = (32, 64)
-    num_train_timesteps: int = 1000
-    beta_start: float = 0.00085
-    beta_end: float = 0.012
-    beta_schedule: str = "scaled_linear"
-    prediction_type: str = "epsilon"
-    condition_dropout: float = 0.05
-    warp_hint: bool = True
-    warp_supersample: int = 2
-    hint_residual: bool = False
-
-    def __post_init__(self) -> None:
-        if self.space not in ("pixel", "latent"):
-            raise ValueError(f"space must be 'pixel' or 'latent', got {self.space!r}")
-        if self.prediction_type not in ("epsilon", "v_prediction"):
-            raise ValueError(
-                f"prediction_type must be 'epsilon' or 'v_prediction', got {self.prediction_type!r}"
-            )
-        if self.warp_hint and self.space != "pixel":
-            raise ValueError("warp_hint is a pixel-space hint: use space='pixel' or warp_hint=False")
-        if self.hint_residual and not self.warp_hint:
-            raise ValueError(
-                "hint_residual denoises the residual from the warp hint: it needs warp_hint=True"
-            )
-        if self.warp_supersample < 1:
-            raise ValueError(f"warp_supersample must be >= 1, got {self.warp_supersample}")
-        if self.space == "latent" and self.image_size % 8:
-            raise ValueError(f"latent space needs an image size divisible by 8, got {self.image_size}")
-        for name in ("block_out_channels", "down_block_types", "up_block_types", "encoder_channels"):
-            setattr(self, name, tuple(getattr(self, name)))
-
-    @property
-    def model_channels(self) -> int:
-        """Channels the UNet denoises (RGBA pixels or VAE latents)."""
-        return self.latent_channels if self.space == "latent" else self.image_channels
-
-    @property
-    def model_size(self) -> int:
-        """Spatial side of what the UNet denoises."""
-        return self.image_size // 8 if self.space == "latent" else self.image_size
-
-    @property
-    def input_channels(self) -> int:
-        """UNet input channels: noisy target, reference and (with ``warp_hint``) warped RGBA + validity."""
-        return 2 * self.model_channels + (WARP_CHANNELS if self.warp_hint else 0)
-
-    @property
-    def warp_source_size(self) -> int:
-        """Side of the reference image and depth map the warp hint is splatted from."""
-        return self.image_size * self.warp_supersample
-
-    @classmethod
-    def from_dict(cls, data: dict) -> NVSConfig:
-        """Config from ``config.json``; files written before the warp hint existed have ``warp_hint=False``."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"unknown NVS config keys {unknown}")
-        return cls(**{"warp_hint": False, **data})
+MODEL_KIND = "nvs"
 
 
 class ReferenceEncoder(nn.Module):
@@ -134,38 +48,6 @@ class ReferenceEncoder(nn.Module):
     def forward(self, image: Tensor) -> Tensor:
         """``[B,C,H,W] -> [B,embed_dim]``."""
         return self.proj(self.features(image).mean(dim=(-2, -1)))
-
-
-def make_train_scheduler(config: NVSConfig) -> DDPMScheduler:
-    """DDPM noise schedule of ``config`` (training)."""
-    return DDPMScheduler(
-        num_train_timesteps=config.num_train_timesteps,
-        beta_start=config.beta_start,
-        beta_end=config.beta_end,
-        beta_schedule=config.beta_schedule,
-        prediction_type=config.prediction_type,
-        clip_sample=False,
-    )
-
-
-def make_sample_scheduler(config: NVSConfig) -> DDIMScheduler:
-    """Deterministic DDIM (``eta = 0``) on the same schedule; the last step returns the clean estimate.
-
-    Trailing timestep spacing, so the first step is at ``t = T - 1`` (pure noise) whatever the step count
-    (one step returns the conditional-mean estimate). In pixel space the clean estimate is clipped to
-    ``[-1, 1]`` (``[-2, 2]`` for a residual from the warp hint) at every step.
-    """
-    return DDIMScheduler(
-        num_train_timesteps=config.num_train_timesteps,
-        beta_start=config.beta_start,
-        beta_end=config.beta_end,
-        beta_schedule=config.beta_schedule,
-        prediction_type=config.prediction_type,
-        clip_sample=config.space == "pixel",
-        clip_sample_range=2.0 if config.hint_residual else 1.0,
-        set_alpha_to_one=True,
-        timestep_spacing="trailing",
-    )
 
 
 @dataclass
@@ -368,7 +250,7 @@ class NVSModel(nn.Module):
         batch.validate()
         if batch.targets is None:
             raise ValueError("training needs target images")
-        scheduler = scheduler or make_train_scheduler(self.config)
+        scheduler = scheduler or make_ddpm_scheduler(self.config.scheduler)
         b, v = batch.target_w2c.shape[:2]
         device = batch.reference.device
         with torch.no_grad():
@@ -399,88 +281,27 @@ class NVSModel(nn.Module):
             goal = scheduler.get_velocity(target, noise, t)
         return F.mse_loss(pred, goal)
 
-    # --------------------------------------------------------------- sampling
-    @torch.no_grad()
-    def sample(
-        self,
-        batch: NVSBatch,
-        num_steps: int = 50,
-        guidance_scale: float = 3.0,
-        generator: torch.Generator | None = None,
-    ) -> Tensor:
-        """Generate the target views, ``[B,V,4,H,W]`` RGBA in ``[0, 1]`` at the model's image size.
-
-        One initial noise per object, shared by its views; DDIM (``eta = 0``) with classifier-free guidance
-        ``eps = eps_u + s (eps_c - eps_u)`` where the unconditional branch drops image, reference, rays and
-        warp hint.
-        """
-        batch.validate()
-        if num_steps < 1:
-            raise ValueError(f"num_steps must be >= 1, got {num_steps}")
-        b, v = batch.target_w2c.shape[:2]
-        device = batch.reference.device
-        reference = self.encode(batch.reference)
-        hint = self.warp_hint(batch)
-        base = hint_base(hint) if self.config.hint_residual else 0.0
-        rays, pose = self.conditioning(batch, reference)
-        embedding = self.reference_encoder(reference).repeat_interleave(v, dim=0)
-        ref = reference.repeat_interleave(v, dim=0)
-        n = b * v
-        keep = torch.zeros(n, dtype=torch.bool, device=device)
-        cond = self.context(embedding, pose, keep)
-        guided = guidance_scale != 1.0
-        if guided:
-            uncond = self.context(embedding, pose, ~keep)
-            cond = torch.cat([cond, uncond])
-            ref = torch.cat([ref, torch.zeros_like(ref)])
-            rays = torch.cat([rays, torch.zeros_like(rays)])
-            if hint is not None:
-                hint = torch.cat([hint, torch.zeros_like(hint)])
-        c, h = self.config.model_channels, self.config.model_size
-        x = shared_noise(b, v, (c, h, h), generator=generator, device=device).flatten(0, 1)
-        scheduler = make_sample_scheduler(self.config)
-        scheduler.set_timesteps(num_steps, device=device)
-        for t in scheduler.timesteps:
-            model_in = torch.cat([x, x]) if guided else x
-            ts = t.expand(model_in.shape[0]).to(device)
-            pred = self.denoise(model_in, ts, ref, cond, rays, v, hint)
-            if guided:
-                pred_c, pred_u = pred.chunk(2)
-                pred = pred_u + guidance_scale * (pred_c - pred_u)
-            x = scheduler.step(pred, t, x).prev_sample
-        rgba = self.decode(x + base)
-        return rgba.reshape(b, v, *rgba.shape[1:])
-
     # -------------------------------------------------------------- save/load
     def save(self, folder: str | Path, half: bool = False) -> Path:
-        """Write ``config.json`` and ``model.safetensors`` (without the VAE; floats in fp16 with ``half``)
-        atomically into ``folder``."""
-        folder = Path(folder)
-        tensors = {
-            k: (v.half() if half and v.is_floating_point() else v).detach().cpu().contiguous()
-            for k, v in self.state_dict().items()
-            if not k.startswith("vae.")
-        }
-        atomic_save_safetensors(folder / WEIGHTS_NAME, tensors)
-        atomic_write_json(folder / CONFIG_NAME, asdict(self.config))
-        return folder
+        """Write the model (without the VAE; floats in fp16 with ``half``) into ``folder``
+        (:mod:`~diamond_sss.diffusion.common.model_io`)."""
+        state = {k: v for k, v in self.state_dict().items() if not k.startswith("vae.")}
+        return save_model(folder, MODEL_KIND, asdict(self.config), state, half=half)
+
+    @staticmethod
+    def read_config(folder: str | Path) -> NVSConfig:
+        """The config of the model in ``folder`` (either ``config.json`` layout)."""
+        config, _ = read_model_config(folder, MODEL_KIND, lambda flat: {"config": flat})
+        try:
+            return NVSConfig.from_dict(config)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{Path(folder) / CONFIG_NAME}: {error}") from error
 
     @classmethod
     def load(cls, folder: str | Path, vae: AutoencoderKL | None = None) -> NVSModel:
         """Load a model written by :meth:`save`."""
-        folder = Path(folder)
-        for name in (CONFIG_NAME, WEIGHTS_NAME):
-            if not (folder / name).is_file():
-                raise FileNotFoundError(f"NVS model folder {folder} has no {name}")
-        config = NVSConfig.from_dict(json.loads((folder / CONFIG_NAME).read_text()))
-        model = cls(config, vae=vae)
-        state = {k: v.float() if v.is_floating_point() else v for k, v in load_safetensors(folder / WEIGHTS_NAME).items()}
-        missing, unexpected = model.load_state_dict(state, strict=False)
-        missing = [k for k in missing if not k.startswith("vae.")]
-        if missing or unexpected:
-            raise ValueError(
-                f"{folder / WEIGHTS_NAME}: missing keys {missing[:5]}, unexpected {unexpected[:5]}"
-            )
+        model = cls(cls.read_config(folder), vae=vae)
+        load_weights(model, folder, skip_prefix="vae.")
         return model.eval()
 
 

@@ -1,7 +1,8 @@
-"""Novel-view generation for an OLAT data set: reference (view, light) -> target cameras, cached.
+"""Novel-view generation: the in-memory pipeline, and for an OLAT data set reference (view, light) -> target
+cameras, cached.
 
-Outputs in ``out``: ``<name>.png`` (sRGB, premultiplied colour with alpha), ``<name>_mask.png`` (alpha) and
-``manifest.json``, a list of ``{view, light, image, mask}`` with paths relative to ``out``. Generation is
+Outputs in ``out``: ``images/<name>.png``, ``masks/<name>.png`` and ``manifest.json``
+(:mod:`~diamond_sss.diffusion.common.manifest`; ``<name>`` is ``view_<index>`` or ``pose_<index>``). Generation is
 cached under a key of the model hash and the hash of every input (reference image, cameras, settings, and the
 geometry source that gives a warp-hint model the reference's metric depth).
 """
@@ -11,8 +12,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 import torch
@@ -22,24 +23,85 @@ from torch import Tensor
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.conventions import intrinsics_from_fov, opengl_c2w_to_opencv_w2c, scale_intrinsics
 from diamond_sss.data.images import to_srgb8, write_png
-from diamond_sss.diffusion.common import OutputCache, files_hash
+from diamond_sss.diffusion.common.cache import OutputCache
+from diamond_sss.diffusion.common.hashing import files_hash
+from diamond_sss.diffusion.common.manifest import GeneratedImage, image_paths, write_image_manifest
+from diamond_sss.diffusion.common.paths import default_cache_dir, shipped_model_dir
+from diamond_sss.diffusion.common.sampling import PipelineOutput, ddim_sample
+from diamond_sss.diffusion.common.schedulers import make_ddim_scheduler
 from diamond_sss.diffusion.geometry.base import GeometryError, GeometrySource
 from diamond_sss.diffusion.nvs.data import load_rgba_views
-from diamond_sss.diffusion.nvs.model import CONFIG_NAME, NVSBatch, NVSConfig, NVSModel
+from diamond_sss.diffusion.nvs.model import (
+    NVSBatch,
+    NVSConfig,
+    NVSModel,
+    hint_base,
+    shared_noise,
+)
 from diamond_sss.diffusion.nvs.warp import forward_warp, resize_depth
-from diamond_sss.utils.io import atomic_write_json, sha256_file
-
-MANIFEST = "manifest.json"
+from diamond_sss.utils.io import sha256_file
 
 
 def default_model_dir() -> Path:
-    """The model shipped inside the package (``diamond_sss/assets/models/nvs``)."""
-    return Path(str(resources.files("diamond_sss") / "assets" / "models" / "nvs"))
+    """The novel-view model shipped inside the package (:func:`~diamond_sss.diffusion.common.paths.shipped_model_dir`)."""
+    return shipped_model_dir("nvs")
 
 
-def default_cache_dir() -> Path:
-    """``$DIAMOND_SSS_CACHE/nvs``, default ``~/.cache/diamond_sss/nvs``."""
-    return Path(os.environ.get("DIAMOND_SSS_CACHE", Path.home() / ".cache" / "diamond_sss")) / "nvs"
+class NovelViewPipeline:
+    """In-memory novel-view generation: an :class:`NVSModel` sampled with DDIM (``eta = 0``) and
+    classifier-free guidance ``eps = eps_u + s (eps_c - eps_u)``, whose unconditional branch drops image,
+    reference, rays and warp hint. One initial noise per object, shared by its views."""
+
+    def __init__(self, model: NVSModel) -> None:
+        self.model = model
+
+    @torch.no_grad()
+    def __call__(
+        self,
+        batch: NVSBatch,
+        num_steps: int = 50,
+        guidance_scale: float = 3.0,
+        generator: torch.Generator | None = None,
+        size: int | None = None,
+    ) -> PipelineOutput:
+        """The target views of ``batch``, ``B*V`` images (views of an object contiguous) at the model's image
+        size, or bilinearly resized to ``size``."""
+        model, config = self.model, self.model.config
+        batch.validate()
+        b, v = batch.target_w2c.shape[:2]
+        device = batch.reference.device
+        reference = model.encode(batch.reference)
+        hint = model.warp_hint(batch)
+        base = hint_base(hint) if config.hint_residual else 0.0
+        rays, pose = model.conditioning(batch, reference)
+        embedding = model.reference_encoder(reference).repeat_interleave(v, dim=0)
+        ref = reference.repeat_interleave(v, dim=0)
+        keep = torch.zeros(b * v, dtype=torch.bool, device=device)
+        cond = model.context(embedding, pose, keep)
+        guided = guidance_scale != 1.0
+        if guided:
+            cond = torch.cat([cond, model.context(embedding, pose, ~keep)])
+            ref = torch.cat([ref, torch.zeros_like(ref)])
+            rays = torch.cat([rays, torch.zeros_like(rays)])
+            if hint is not None:
+                hint = torch.cat([hint, torch.zeros_like(hint)])
+
+        def denoise(x: Tensor, timesteps: Tensor) -> Tensor:
+            pred = model.denoise(torch.cat([x, x]) if guided else x,
+                                 torch.cat([timesteps, timesteps]) if guided else timesteps, ref, cond, rays, v, hint)
+            if not guided:
+                return pred
+            pred_c, pred_u = pred.chunk(2)
+            return pred_u + guidance_scale * (pred_c - pred_u)
+
+        shape = (config.model_channels, config.model_size, config.model_size)
+        noise = shared_noise(b, v, shape, generator=generator, device=device).flatten(0, 1)
+        scheduler = make_ddim_scheduler(config.scheduler, config.sample_clip_range)
+        x = ddim_sample(denoise, (b * v, *shape), scheduler, num_steps, device=device, noise=noise)
+        rgba = model.decode(x + base).float().cpu()
+        if size is not None:
+            rgba = F.interpolate(rgba, size=(size, size), mode="bilinear", align_corners=False).clamp(0, 1)
+        return PipelineOutput(rgb=rgba[:, :3].permute(0, 2, 3, 1), alpha=rgba[:, 3:].permute(0, 2, 3, 1))
 
 
 @dataclass
@@ -51,6 +113,25 @@ class TargetCameras:
     views: list[int]
     names: list[str]
     size: int
+
+    @classmethod
+    def from_views(cls, dataset: OLATDataset, views: Sequence[int]) -> TargetCameras:
+        """The cameras of lattice views ``views`` of ``dataset`` (named ``view_<index>``)."""
+        views = list(views)
+        if not views:
+            raise ValueError("no target view given")
+        bad = [v for v in views if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < dataset.num_views]
+        if bad:
+            raise ValueError(
+                f"unknown view index {bad} (the {dataset.split} split has views 0..{dataset.num_views - 1})"
+            )
+        return cls(
+            dataset.viewmats[views].double(),
+            dataset.intrinsics[views].double(),
+            views,
+            [f"view_{v:03d}" for v in views],
+            dataset.width,
+        )
 
 
 def _matrix(value, shape: tuple[int, int], where: str) -> Tensor:
@@ -72,7 +153,6 @@ def parse_targets(targets: str, dataset: OLATDataset) -> TargetCameras:
     [{"transform_matrix": M}, ...]}`` as in ``transforms_*.json``; without a field of view the data set's
     intrinsics are used.
     """
-    size = dataset.width
     text = targets.strip()
     if _is_index_list(text):
         views = json.loads(text)
@@ -87,18 +167,7 @@ def parse_targets(targets: str, dataset: OLATDataset) -> TargetCameras:
             ) from None
     if not views:
         raise ValueError("--targets lists no view")
-    bad = [v for v in views if not 0 <= v < dataset.num_views]
-    if bad:
-        raise ValueError(
-            f"unknown view index {bad} (the {dataset.split} split has views 0..{dataset.num_views - 1})"
-        )
-    return TargetCameras(
-        dataset.viewmats[views].double(),
-        dataset.intrinsics[views].double(),
-        views,
-        [f"view_{v:03d}" for v in views],
-        size,
-    )
+    return TargetCameras.from_views(dataset, views)
 
 
 def _is_index_list(text: str) -> bool:
@@ -121,7 +190,7 @@ def _targets_from_json(text: str, dataset: OLATDataset) -> TargetCameras:
     except json.JSONDecodeError as err:
         raise ValueError(f"malformed pose JSON in {source}: {err}") from None
     if isinstance(data, list) and all(isinstance(v, int) for v in data):
-        return parse_targets(",".join(str(v) for v in data), dataset)
+        return TargetCameras.from_views(dataset, data)
     fov = None
     if isinstance(data, dict):
         if not isinstance(data.get("frames"), list):
@@ -192,7 +261,7 @@ def generate_novel_views(
     out: str | Path,
     view: int,
     light: int,
-    targets: str,
+    targets: Sequence[int] | TargetCameras,
     split: str = "train",
     model_dir: str | Path | None = None,
     steps: int = 1,
@@ -202,7 +271,8 @@ def generate_novel_views(
     device: str = "cpu",
     geometry: GeometrySource | None = None,
 ) -> Path:
-    """Generate the ``targets`` of ``data`` under ``light`` from reference ``view``; returns the manifest.
+    """Generate the ``targets`` (lattice view indices or cameras, see :func:`parse_targets`) of ``data`` under
+    ``light`` from reference ``view``; returns the manifest (:mod:`~diamond_sss.diffusion.common.manifest`).
 
     A model with the warp hint needs ``geometry`` giving the reference's metric depth (stored maps or a
     reconstruction run folder). Deterministic for a seed; a second call with the same model and inputs is
@@ -219,13 +289,12 @@ def generate_novel_views(
         )
     if not bool(dataset.presence[view, light]):
         raise ValueError(f"view {view} was not captured under light {light} in {dataset.json_path}")
-    cameras = parse_targets(targets, dataset)
+    if isinstance(targets, str):
+        raise TypeError(f"targets must be view indices or TargetCameras, got the string {targets!r} (parse_targets "
+                        "reads the command line's form)")
+    cameras = targets if isinstance(targets, TargetCameras) else TargetCameras.from_views(dataset, targets)
     model_dir = Path(model_dir) if model_dir is not None else default_model_dir()
-    if not (model_dir / CONFIG_NAME).is_file():
-        raise FileNotFoundError(
-            f"no novel-view model in {model_dir} (expected {CONFIG_NAME} and model.safetensors)"
-        )
-    config = NVSConfig.from_dict(json.loads((model_dir / CONFIG_NAME).read_text()))
+    config = NVSModel.read_config(model_dir)
     if config.warp_hint and geometry is None:
         raise GeometryError(
             f"the novel-view model in {model_dir} uses the warp hint and needs the reference's metric depth: "
@@ -247,7 +316,7 @@ def generate_novel_views(
             "geometry": geometry.key() if config.warp_hint else None,
         }
     )
-    cache = OutputCache(cache_dir if cache_dir is not None else default_cache_dir())
+    cache = OutputCache(cache_dir if cache_dir is not None else default_cache_dir("nvs"))
 
     def write(folder: Path) -> None:
         model = NVSModel.load(model_dir).to(device)
@@ -264,24 +333,18 @@ def generate_novel_views(
             reference_depth=None if depth is None else depth.to(device),
         )
         generator = torch.Generator(device=device).manual_seed(seed)
-        rgba = model.sample(batch, num_steps=steps, guidance_scale=guidance_scale, generator=generator)[0]
-        rgba = F.interpolate(
-            rgba.float().cpu(), size=(cameras.size, cameras.size), mode="bilinear", align_corners=False
-        ).clamp(0, 1)
-        for name, image in zip(cameras.names, rgba):
-            rgb, alpha = image[:3].permute(1, 2, 0), image[3:].permute(1, 2, 0)
+        output = NovelViewPipeline(model)(batch, steps, guidance_scale, generator, size=cameras.size)
+        for name, rgb, alpha in zip(cameras.names, output.rgb, output.alpha):
             write_png(folder / f"{name}.png", to_srgb8(rgb, alpha))
             write_png(folder / f"{name}_mask.png", (alpha[..., 0].numpy() * 255 + 0.5).astype("uint8"))
 
     entry, _ = cache.get_or_create(key, write)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    manifest = []
+    items = []
     for target_view, name in zip(cameras.views, cameras.names):
-        for suffix in (".png", "_mask.png"):
-            shutil.copyfile(entry / f"{name}{suffix}", out / f".{name}{suffix}.tmp")
-            os.replace(out / f".{name}{suffix}.tmp", out / f"{name}{suffix}")
-        manifest.append(
-            {"view": target_view, "light": light, "image": f"{name}.png", "mask": f"{name}_mask.png"}
-        )
-    return atomic_write_json(out / MANIFEST, manifest)
+        item = GeneratedImage(target_view, light, *image_paths(out, name))
+        for cached, path in ((f"{name}.png", item.image), (f"{name}_mask.png", item.mask)):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(entry / cached, path.with_name(f".{path.name}.tmp"))
+            os.replace(path.with_name(f".{path.name}.tmp"), path)
+        items.append(item)
+    return write_image_manifest(out, items)

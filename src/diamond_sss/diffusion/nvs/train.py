@@ -9,38 +9,26 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
 from diffusers.optimization import get_constant_schedule_with_warmup
 
-from diamond_sss.diffusion.common import EMA, latest_checkpoint, load_checkpoint, save_checkpoint
+from diamond_sss.diffusion.common.ema import EMA
 from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
+from diamond_sss.diffusion.common.schedulers import make_ddpm_scheduler
+from diamond_sss.diffusion.nvs.config import FinetuneConfig
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch
-from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel, make_train_scheduler
+from diamond_sss.diffusion.nvs.model import NVSModel
+from diamond_sss.training.checkpoint import (
+    latest_accelerate_checkpoint,
+    load_accelerate_checkpoint,
+    save_accelerate_checkpoint,
+)
 from diamond_sss.utils.io import atomic_write_json
 
 CHECKPOINTS = "checkpoints"
-
-
-@dataclass
-class FinetuneConfig:
-    """Fine-tuning hyper-parameters."""
-
-    steps: int = 1000
-    objects_per_batch: int = 4
-    views_per_object: int = 4
-    learning_rate: float = 1e-4
-    warmup_steps: int = 100
-    weight_decay: float = 0.0
-    ema_decay: float = 0.999
-    gradient_checkpointing: bool = True
-    seed: int = 0
-    checkpoint_every: int = 200
-    keep_checkpoints: int = 2
-    log_every: int = 25
-    model: NVSConfig = field(default_factory=NVSConfig)
 
 
 @deterministic_kernels
@@ -74,13 +62,13 @@ def finetune(
     raw = accelerator.unwrap_model(model)
     ema = EMA(raw, decay=config.ema_decay)
     accelerator.register_for_checkpointing(ema)
-    noise_schedule = make_train_scheduler(config.model)
+    noise_schedule = make_ddpm_scheduler(config.model.scheduler)
     atomic_write_json(out / "finetune_config.json", asdict(config))
 
     step = 0
-    latest = latest_checkpoint(out / CHECKPOINTS) if resume else None
+    latest = latest_accelerate_checkpoint(out / CHECKPOINTS) if resume else None
     if latest is not None:
-        step = load_checkpoint(accelerator, latest)["step"]
+        step = load_accelerate_checkpoint(accelerator, latest)["step"]
         log(f"resumed from {latest} at step {step}")
 
     log_path = out / "train_log.jsonl"
@@ -112,7 +100,7 @@ def finetune(
                 f.write(json.dumps(record) + "\n")
             log(f"step {step}/{config.steps} loss {record['loss']:.4f}")
         if step % config.checkpoint_every == 0 or step == config.steps:
-            save_checkpoint(accelerator, out / CHECKPOINTS, step, keep=config.keep_checkpoints)
+            save_accelerate_checkpoint(accelerator, out / CHECKPOINTS, step, keep=config.keep_checkpoints)
 
     with ema.averaged(raw):
         return raw.save(out / "model")

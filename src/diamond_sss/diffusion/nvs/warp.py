@@ -19,8 +19,6 @@ from diamond_sss.data.conventions import pixel_grid, project_points, unproject_p
 FOOTPRINTS = ("nearest", "bilinear")
 MIN_WEIGHT = 1e-6
 """Footprint weights at or below this (round-off of points on pixel centres) do not take part in the z-test."""
-WARP_CHANNELS = 5
-"""Channels of the hint: warped RGBA and validity."""
 
 
 def _check(name: str, tensor: Tensor, shape: tuple[int | None, ...]) -> None:

@@ -16,12 +16,12 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from diamond_sss.diffusion.relight.conditioning import image_to_model, model_to_image
+from diamond_sss.diffusion.relight.config import RelightAugmentConfig
 from diamond_sss.diffusion.relight.hint import direction_from_code
 from diamond_sss.shading.sh import light_sh_encoding
 
@@ -31,32 +31,6 @@ CONDITIONING_NORMAL_X = 4
 """Camera-space normal x inside a conditioning image."""
 MAPS_NORMAL_X = 1
 """Camera-space normal x inside the 5 non-image maps (nearness, normals, mask)."""
-
-
-@dataclass(frozen=True)
-class RelightAugmentConfig:
-    """Augmentations of each training pair (module doc).
-
-    Attributes:
-        mirror: mirror half of the pairs left-right.
-        exposure: log2 range ``e`` of the shared gain (1 = from 1/2 to 2 times; 0 = off).
-        tint: natural-log range ``t`` of the per-channel gains (0.15 = about +-16%; 0 = off).
-        permute_colors: permute the colour channels of each pair by one of the 6 permutations, uniformly.
-    """
-
-    mirror: bool = True
-    exposure: float = 1.0
-    tint: float = 0.15
-    permute_colors: bool = True
-
-    def __post_init__(self) -> None:
-        if self.exposure < 0.0 or self.tint < 0.0:
-            raise ValueError(f"exposure and tint must be >= 0, got {self.exposure} and {self.tint}")
-
-    @classmethod
-    def off(cls) -> RelightAugmentConfig:
-        """No augmentation: every pair as rendered."""
-        return cls(mirror=False, exposure=0.0, tint=0.0, permute_colors=False)
 
 
 def mirror_code(code: Tensor) -> Tensor:

@@ -2,8 +2,8 @@
 
 All channels are mapped to about [-1, 1] at the model's resolution:
 source ``2 srgb(I) - 1``; depth as normalised nearness ``2 (1/z - min) / (max - min) - 1`` over the mask
-(Depth Anything's relative disparity is normalised the same way); normals ``R n`` in the OpenCV camera frame;
-mask ``2 m - 1``. Background depth and normals are 0 / -1 as written below.
+(:func:`~diamond_sss.diffusion.geometry.base.depth_to_nearness`; Depth Anything's relative disparity is normalised
+the same way); normals ``R n`` in the OpenCV camera frame; mask ``2 m - 1``. Background depth and normals are 0 / -1 as written below.
 """
 
 from __future__ import annotations
@@ -13,8 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diamond_sss.data.conventions import linear_to_srgb, srgb_to_linear
-
-MASK_THRESHOLD = 0.5
+from diamond_sss.diffusion.geometry.base import MASK_THRESHOLD
 
 
 def image_to_model(linear_rgb: Tensor) -> Tensor:
@@ -25,33 +24,6 @@ def image_to_model(linear_rgb: Tensor) -> Tensor:
 def model_to_image(x: Tensor) -> Tensor:
     """Model space ``[B,3,H,W]`` -> linear radiance ``[B,H,W,3]`` in [0, 1]."""
     return srgb_to_linear(((x.permute(0, 2, 3, 1) + 1.0) * 0.5).clamp(0.0, 1.0))
-
-
-def normalized_nearness(disparity: Tensor, mask: Tensor) -> Tensor:
-    """Scale a disparity-like map ``[...,H,W,1]`` to [0, 1] over ``mask > 0.5`` (0 outside; 1 = nearest)."""
-    keep = mask > MASK_THRESHOLD
-    flat_d = disparity.flatten(-3)
-    flat_k = keep.flatten(-3)
-    big = torch.finfo(disparity.dtype).max
-    low = torch.where(flat_k, flat_d, big).amin(-1)
-    high = torch.where(flat_k, flat_d, -big).amax(-1)
-    shape = disparity.shape[:-3] + (1, 1, 1)
-    low, high = low.reshape(shape), high.reshape(shape)
-    scaled = (disparity - low) / (high - low).clamp_min(1e-8)
-    return torch.where(keep, scaled.clamp(0.0, 1.0), torch.zeros_like(scaled))
-
-
-def depth_to_nearness(depth: Tensor, mask: Tensor) -> Tensor:
-    """Camera-z depth ``[...,H,W,1]`` (0 = background) -> normalised nearness (see module doc)."""
-    keep = (mask > MASK_THRESHOLD) & (depth > 0)
-    disparity = torch.where(keep, 1.0 / depth.clamp_min(1e-8), torch.zeros_like(depth))
-    return normalized_nearness(disparity, keep.to(depth.dtype))
-
-
-def world_to_camera_normals(normals_world: Tensor, w2c: Tensor) -> Tensor:
-    """Rotate world normals ``[B,H,W,3]`` into each camera's OpenCV frame with ``w2c [B,4,4]``."""
-    rotated = torch.einsum("bij,bhwj->bhwi", w2c[:, :3, :3].to(normals_world), normals_world)
-    return F.normalize(rotated, dim=-1, eps=1e-8)
 
 
 def conditioning_image(

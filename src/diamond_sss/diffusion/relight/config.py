@@ -1,10 +1,11 @@
-"""Configuration of the relighting diffusion model (pixel-space default or latent space on a pretrained SD)."""
+"""Configuration of the relighting diffusion model (pixel-space default or latent space on a pretrained SD) and
+of its fine-tuning (no torch: the command line derives its options from them)."""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
 
-from diamond_sss.diffusion.common.sampling import SchedulerConfig
+from diamond_sss.diffusion.common.schedulers import SchedulerConfig
 
 LIGHT_CODE_DIM = 10
 """9 SH coefficients (degree 2) of the light direction in the source camera frame + the light distance."""
@@ -123,3 +124,79 @@ class RelightModelConfig:
         if isinstance(data.get("scheduler"), dict):
             data["scheduler"] = SchedulerConfig(**data["scheduler"])
         return cls(**data)
+
+
+@dataclass(frozen=True)
+class RelightLossWeights:
+    """Weights of the terms above (``lpips`` only counts when an LPIPS network is given)."""
+
+    v_mse: float = 1.0
+    l1: float = 0.5
+    ssim: float = 0.2
+    lpips: float = 0.1
+    cycle: float = 0.2
+    low_frequency: float = 0.5
+    low_frequency_kernel: int = 4
+
+
+@dataclass(frozen=True)
+class RelightAugmentConfig:
+    """Augmentations of each training pair (module doc).
+
+    Attributes:
+        mirror: mirror half of the pairs left-right.
+        exposure: log2 range ``e`` of the shared gain (1 = from 1/2 to 2 times; 0 = off).
+        tint: natural-log range ``t`` of the per-channel gains (0.15 = about +-16%; 0 = off).
+        permute_colors: permute the colour channels of each pair by one of the 6 permutations, uniformly.
+    """
+
+    mirror: bool = True
+    exposure: float = 1.0
+    tint: float = 0.15
+    permute_colors: bool = True
+
+    def __post_init__(self) -> None:
+        if self.exposure < 0.0 or self.tint < 0.0:
+            raise ValueError(f"exposure and tint must be >= 0, got {self.exposure} and {self.tint}")
+
+    @classmethod
+    def off(cls) -> RelightAugmentConfig:
+        """No augmentation: every pair as rendered."""
+        return cls(mirror=False, exposure=0.0, tint=0.0, permute_colors=False)
+
+
+@dataclass(frozen=True)
+class RelightTrainConfig:
+    """Fine-tuning settings.
+
+    Attributes:
+        steps: optimisation steps.
+        batch_size: (source, target) pairs per step.
+        learning_rate: AdamW peak learning rate, reached after ``warmup_steps`` (linear), then cosine to 10%.
+        warmup_steps: linear warm-up length.
+        weight_decay: AdamW weight decay.
+        ema_decay: EMA decay of the shipped weights.
+        cycle_every: compute the cycle-consistency term every this many steps (it doubles a step's cost).
+        checkpoint_every: steps between atomic checkpoints.
+        log_every: steps between log lines.
+        seed: seed of initialisation, batches, timesteps and noise.
+        mixed_precision: accelerate's ``"no"``, ``"fp16"`` or ``"bf16"`` (GPU).
+        time_limit_s: stop early (checkpoint and weights written) once this much wall time has passed.
+        losses: loss weights.
+        augment: mirror / exposure / tint / colour-permutation augmentation of the pairs (``augment.py``).
+    """
+
+    steps: int = 2000
+    batch_size: int = 8
+    learning_rate: float = 5e-4
+    warmup_steps: int = 50
+    weight_decay: float = 1e-4
+    ema_decay: float = 0.995
+    cycle_every: int = 4
+    checkpoint_every: int = 100
+    log_every: int = 10
+    seed: int = 0
+    mixed_precision: str = "no"
+    time_limit_s: float | None = None
+    losses: RelightLossWeights = field(default_factory=RelightLossWeights)
+    augment: RelightAugmentConfig = field(default_factory=RelightAugmentConfig)

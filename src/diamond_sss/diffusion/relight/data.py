@@ -19,12 +19,8 @@ from torch import Tensor
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.embedded import FINETUNE_PREFIX, embedded_dataset, embedded_dataset_names
 from diamond_sss.data.errors import DataError
-from diamond_sss.diffusion.relight.conditioning import (
-    conditioning_image,
-    depth_to_nearness,
-    image_to_model,
-    world_to_camera_normals,
-)
+from diamond_sss.diffusion.geometry.base import depth_to_nearness, world_to_camera_normals
+from diamond_sss.diffusion.relight.conditioning import conditioning_image, image_to_model
 from diamond_sss.diffusion.relight.light import light_code
 
 MAX_FRACTION = 0.07

@@ -11,23 +11,23 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.images import load_rgba, to_srgb8, write_png
 from diamond_sss.diffusion.common.cache import OutputCache
+from diamond_sss.diffusion.common.manifest import GeneratedImage, image_paths, write_image_manifest
+from diamond_sss.diffusion.common.model_io import CONFIG_NAME, WEIGHTS_NAME
+from diamond_sss.diffusion.common.paths import default_cache_dir, shipped_model_dir
 from diamond_sss.diffusion.geometry.base import GeometrySource
-from diamond_sss.diffusion.relight.conditioning import conditioning_image, model_to_image
+from diamond_sss.diffusion.relight.conditioning import conditioning_image
 from diamond_sss.diffusion.relight.light import light_code
-from diamond_sss.diffusion.relight.model import CONFIG_NAME, WEIGHTS_NAME, RelightDiffusion
-from diamond_sss.utils.io import atomic_write_json, sha256_file
-
-MANIFEST_NAME = "manifest.json"
+from diamond_sss.diffusion.relight.model import RelightDiffusion
+from diamond_sss.diffusion.relight.pipeline import RelightPipeline
+from diamond_sss.utils.io import sha256_file
 
 
 @dataclass
@@ -43,14 +43,13 @@ class RelitImage:
 
 
 def shipped_model_path() -> Path:
-    """Folder of the relighting model shipped in the package (``assets/models/relight``)."""
-    return Path(str(resources.files("diamond_sss") / "assets" / "models" / "relight"))
+    """The relighting model shipped in the package (:func:`~diamond_sss.diffusion.common.paths.shipped_model_dir`)."""
+    return shipped_model_dir("relight")
 
 
 def default_cache_root() -> Path:
-    """``$DIAMOND_SSS_CACHE/relight``, else ``~/.cache/diamond_sss/relight``."""
-    base = os.environ.get("DIAMOND_SSS_CACHE") or Path.home() / ".cache" / "diamond_sss"
-    return Path(base) / "relight"
+    """The relighting cache (:func:`~diamond_sss.diffusion.common.paths.default_cache_dir`)."""
+    return default_cache_dir("relight")
 
 
 def load_model(path: str | os.PathLike | None = None, device: str = "cpu") -> RelightDiffusion:
@@ -174,35 +173,21 @@ def _generate(
         ) from error
     cond = single.expand(count, -1, -1, -1).to(device)
     shape = model.sample_shape(1)[1:]
-    out = torch.zeros(count, 3, model.config.resolution, model.config.resolution)
     target_codes = codes[lights].to(device)
     source_codes = codes[[source_light] * count].to(device)
     with torch.no_grad():
         fit = model.scattering_fit(single.to(device), source_codes[:1])
         hint = model.hint(cond, target_codes, source_codes, fit=None if fit is None else fit.expand(count))
-    for sample in range(samples):
-        noise = torch.stack(
-            [
-                torch.randn(
-                    shape,
-                    generator=torch.Generator().manual_seed(seed * 100_003 + light + sample * 1_000_003),
-                )
-                for light in lights
-            ]
-        )
-        with torch.no_grad():
-            out += (
-                model.relight(
-                    cond, target_codes, source_codes, num_steps=num_steps, noise=noise, hint=hint
-                )
-                .float()
-                .cpu()
-                / samples
-            )
-    height, width = rgb.shape[:2]
-    if out.shape[-2:] != (height, width):
-        out = F.interpolate(out, size=(height, width), mode="bilinear", align_corners=False)
-    images = model_to_image(out) * (mask > 1e-3)
+    noise = torch.stack([
+        torch.stack([
+            torch.randn(shape, generator=torch.Generator().manual_seed(seed * 100_003 + light + sample * 1_000_003))
+            for light in lights
+        ])
+        for sample in range(samples)
+    ])
+    output = RelightPipeline(model)(cond, target_codes, source_codes, num_steps, noise=noise, hint=hint,
+                                    samples=samples, size=tuple(rgb.shape[:2]))
+    images = output.rgb * (mask > 1e-3)
     for light, image in zip(lights, images):
         cache.put(
             keys[light], lambda folder, image=image: write_png(folder / "image.png", to_srgb8(image, mask))
@@ -210,15 +195,12 @@ def _generate(
 
 
 def write_relit(out: str | os.PathLike, results: list[RelitImage]) -> Path:
-    """Write ``images/`` and ``masks/`` PNGs and ``manifest.json`` (``{view, light, image, mask}`` with paths
-    relative to ``out``); returns the manifest path."""
-    out = Path(out)
-    manifest = []
+    """Write the images as ``v<view>_l<light>`` with ``manifest.json`` into ``out``
+    (:mod:`~diamond_sss.diffusion.common.manifest`); returns the manifest path."""
+    items = []
     for item in results:
-        name = f"v{item.view:03d}_l{item.light:03d}.png"
-        write_png(out / "images" / name, to_srgb8(item.rgb, item.mask))
-        write_png(out / "masks" / name, (item.mask[..., 0].numpy() * 255.0 + 0.5).astype("uint8"))
-        manifest.append(
-            {"view": item.view, "light": item.light, "image": f"images/{name}", "mask": f"masks/{name}"}
-        )
-    return atomic_write_json(out / MANIFEST_NAME, manifest)
+        written = GeneratedImage(item.view, item.light, *image_paths(out, f"v{item.view:03d}_l{item.light:03d}"))
+        write_png(written.image, to_srgb8(item.rgb, item.mask))
+        write_png(written.mask, (item.mask[..., 0].numpy() * 255.0 + 0.5).astype("uint8"))
+        items.append(written)
+    return write_image_manifest(out, items)

@@ -10,25 +10,11 @@ transport that blurry predictions get right, independently of high-frequency det
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from diamond_sss.diffusion.relight.config import RelightLossWeights
 from diamond_sss.losses.photometric import ssim_per_image
-
-
-@dataclass(frozen=True)
-class RelightLossWeights:
-    """Weights of the terms above (``lpips`` only counts when an LPIPS network is given)."""
-
-    v_mse: float = 1.0
-    l1: float = 0.5
-    ssim: float = 0.2
-    lpips: float = 0.1
-    cycle: float = 0.2
-    low_frequency: float = 0.5
-    low_frequency_kernel: int = 4
 
 
 def to_unit(x: Tensor) -> Tensor:

@@ -19,13 +19,12 @@ from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
 from torch import Tensor, nn
 
 from diamond_sss.diffusion.common.hashing import state_dict_hash
-from diamond_sss.diffusion.common.sampling import ddim_sample, make_ddim_scheduler, make_ddpm_scheduler
+from diamond_sss.diffusion.common.model_io import CONFIG_NAME, load_weights, read_model_config, save_model
+from diamond_sss.diffusion.common.schedulers import make_ddpm_scheduler
 from diamond_sss.diffusion.relight.config import CONDITIONING_CHANNELS, RelightModelConfig
 from diamond_sss.diffusion.relight.hint import ScatteringFit, configured_fit, relit_hint
-from diamond_sss.utils.io import atomic_save_safetensors, atomic_write_json, load_safetensors
 
-WEIGHTS_NAME = "model.safetensors"
-CONFIG_NAME = "config.json"
+MODEL_KIND = "relight"
 
 
 class LightTokens(nn.Module):
@@ -148,39 +147,24 @@ class RelightDiffusion(nn.Module):
             return cls(config, unet, controlnet, vae)
 
     def save(self, folder: str | os.PathLike, half: bool = False) -> Path:
-        """Write ``config.json`` (this config and the diffusers sub-configs) and ``model.safetensors``."""
-        folder = Path(folder)
-        state = {k: (v.half() if half and v.is_floating_point() else v) for k, v in self.state_dict().items()}
-        atomic_save_safetensors(folder / WEIGHTS_NAME, state)
-        atomic_write_json(
-            folder / CONFIG_NAME,
-            {
-                "relight": self.config.to_dict(),
-                "unet": _public(self.unet.config),
-                "controlnet": _public(self.controlnet.config),
-                "vae": _public(self.vae.config) if self.vae is not None else None,
-            },
-        )
-        return folder
+        """Write the model (this config and the diffusers sub-configs; floats in fp16 with ``half``) into
+        ``folder`` (:mod:`~diamond_sss.diffusion.common.model_io`)."""
+        components = {
+            "unet": _public(self.unet.config),
+            "controlnet": _public(self.controlnet.config),
+            "vae": _public(self.vae.config) if self.vae is not None else None,
+        }
+        return save_model(folder, MODEL_KIND, self.config.to_dict(), self.state_dict(), components, half=half)
 
     @classmethod
     def load(cls, folder: str | os.PathLike) -> RelightDiffusion:
-        """Rebuild a model written by :meth:`save` (weights cast to float32)."""
-        folder = Path(folder)
-        for name in (CONFIG_NAME, WEIGHTS_NAME):
-            if not (folder / name).is_file():
-                raise FileNotFoundError(f"relighting model folder {folder} has no {name}")
-        configs = json.loads((folder / CONFIG_NAME).read_text())
-        config = RelightModelConfig.from_dict(configs["relight"])
-        unet = UNet2DConditionModel.from_config(configs["unet"])
-        controlnet = ControlNetModel.from_config(configs["controlnet"])
-        vae = AutoencoderKL.from_config(configs["vae"]) if configs.get("vae") else None
-        model = cls(config, unet, controlnet, vae)
-        state = {
-            k: v.float() if v.is_floating_point() else v
-            for k, v in load_safetensors(folder / WEIGHTS_NAME).items()
-        }
-        model.load_state_dict(state)
+        """Rebuild a model written by :meth:`save` (either ``config.json`` layout; weights cast to float32)."""
+        config, components = read_model_config(folder, MODEL_KIND, _legacy_layout)
+        unet = UNet2DConditionModel.from_config(components["unet"])
+        controlnet = ControlNetModel.from_config(components["controlnet"])
+        vae = AutoencoderKL.from_config(components["vae"]) if components.get("vae") else None
+        model = cls(RelightModelConfig.from_dict(config), unet, controlnet, vae)
+        load_weights(model, folder)
         return model.eval()
 
     def weights_hash(self) -> str:
@@ -308,38 +292,11 @@ class RelightDiffusion(nn.Module):
             mid_block_additional_residual=mid,
         ).sample
 
-    @torch.no_grad()
-    def relight(
-        self,
-        conditioning: Tensor,
-        target_code: Tensor,
-        source_code: Tensor | None = None,
-        num_steps: int = 20,
-        generator: torch.Generator | None = None,
-        noise: Tensor | None = None,
-        hint: Tensor | None = None,
-    ) -> Tensor:
-        """DDIM (eta 0) sample of the relit image in model space ``[B,3,R,R]`` (the hint added back with
-        ``residual``).
 
-        The initial noise is ``noise`` (shape :meth:`sample_shape`) or drawn from ``generator``; ``hint`` is
-        :meth:`hint` of the same inputs (computed here when not given; pass it when sampling several times).
-        """
-        scheduler = make_ddim_scheduler(self.config.scheduler)
-        device = conditioning.device
-        if hint is None:
-            hint = self.hint(conditioning, target_code, source_code)
-        sample = ddim_sample(
-            lambda x, t: self(x, t, conditioning, target_code, source_code, hint=hint),
-            self.sample_shape(conditioning.shape[0]),
-            scheduler,
-            num_steps,
-            generator,
-            device,
-            noise=noise,
-        )
-        offset = self.offset(hint)
-        return self.decode(sample if offset is None else sample + offset).clamp(-1.0, 1.0)
+def _legacy_layout(data: dict) -> dict:
+    """A ``config.json`` written before :mod:`~diamond_sss.diffusion.common.model_io`:
+    ``{"relight", "unet", "controlnet", "vae"}``."""
+    return {"config": data["relight"], "components": {k: data.get(k) for k in ("unet", "controlnet", "vae")}}
 
 
 def _public(config: dict) -> dict:

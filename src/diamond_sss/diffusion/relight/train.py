@@ -7,58 +7,26 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
-from diamond_sss.diffusion.common.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from diamond_sss.diffusion.common.ema import EMA
 from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
-from diamond_sss.diffusion.relight.augment import RelightAugmentConfig, augment_batch
+from diamond_sss.diffusion.relight.augment import augment_batch
+from diamond_sss.diffusion.relight.config import RelightLossWeights, RelightTrainConfig
 from diamond_sss.diffusion.relight.data import RelightViews
-from diamond_sss.diffusion.relight.losses import RelightLossWeights, image_losses
+from diamond_sss.diffusion.relight.losses import image_losses
 from diamond_sss.diffusion.relight.model import RelightDiffusion
+from diamond_sss.training.checkpoint import (
+    latest_accelerate_checkpoint,
+    load_accelerate_checkpoint,
+    save_accelerate_checkpoint,
+)
 from diamond_sss.utils.io import atomic_write_json
-
-
-@dataclass(frozen=True)
-class RelightTrainConfig:
-    """Fine-tuning settings.
-
-    Attributes:
-        steps: optimisation steps.
-        batch_size: (source, target) pairs per step.
-        learning_rate: AdamW peak learning rate, reached after ``warmup_steps`` (linear), then cosine to 10%.
-        warmup_steps: linear warm-up length.
-        weight_decay: AdamW weight decay.
-        ema_decay: EMA decay of the shipped weights.
-        cycle_every: compute the cycle-consistency term every this many steps (it doubles a step's cost).
-        checkpoint_every: steps between atomic checkpoints.
-        log_every: steps between log lines.
-        seed: seed of initialisation, batches, timesteps and noise.
-        mixed_precision: accelerate's ``"no"``, ``"fp16"`` or ``"bf16"`` (GPU).
-        time_limit_s: stop early (checkpoint and weights written) once this much wall time has passed.
-        losses: loss weights.
-        augment: mirror / exposure / tint / colour-permutation augmentation of the pairs (``augment.py``).
-    """
-
-    steps: int = 2000
-    batch_size: int = 8
-    learning_rate: float = 5e-4
-    warmup_steps: int = 50
-    weight_decay: float = 1e-4
-    ema_decay: float = 0.995
-    cycle_every: int = 4
-    checkpoint_every: int = 100
-    log_every: int = 10
-    seed: int = 0
-    mixed_precision: str = "no"
-    time_limit_s: float | None = None
-    losses: RelightLossWeights = field(default_factory=RelightLossWeights)
-    augment: RelightAugmentConfig = field(default_factory=RelightAugmentConfig)
 
 
 def step_generator(seed: int, step: int) -> torch.Generator:
@@ -158,8 +126,8 @@ def finetune(
         lpips = lpips.to(accelerator.device).requires_grad_(False)
     start = 0
     checkpoint_root = out / "checkpoints"
-    if resume and (found := latest_checkpoint(checkpoint_root)) is not None:
-        start = int(load_checkpoint(accelerator, found)["step"])
+    if resume and (found := latest_accelerate_checkpoint(checkpoint_root)) is not None:
+        start = int(load_accelerate_checkpoint(accelerator, found)["step"])
     device = accelerator.device
     data = {k: v.to(device) for k, v in asdict_views(views).items()}
     on_device = RelightViews(**data, selection=views.selection)
@@ -201,7 +169,7 @@ def finetune(
             if log is not None:
                 log(record)
         if done % config.checkpoint_every == 0 or done == config.steps or out_of_time:
-            save_checkpoint(accelerator, checkpoint_root, done)
+            save_accelerate_checkpoint(accelerator, checkpoint_root, done)
             with ema.averaged(unwrapped):
                 unwrapped.save(out / "model")
         if out_of_time:

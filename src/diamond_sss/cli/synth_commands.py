@@ -1,15 +1,11 @@
-"""``diamond-sss synth``: render a synthetic translucent OLAT capture with Mitsuba 3."""
+"""``diamond-sss synth``: render a synthetic translucent OLAT capture with Mitsuba 3.
+
+The renderer (torch, Mitsuba) is imported when the command runs, so ``diamond-sss --help`` stays fast.
+"""
 
 from __future__ import annotations
 
 import pathlib
-
-from tqdm import tqdm
-
-from diamond_sss.synth.materials import get_material
-from diamond_sss.synth.render import SynthConfig, plan_pairs, synthesize
-from diamond_sss.synth.scene import LightStageConfig
-from diamond_sss.synth.shapes import shape_names
 
 
 def synth(
@@ -28,6 +24,8 @@ def synth(
     camera_radius: float = 4.0,
     light_radius: float = 5.0,
     fov_x_deg: float = 32.0,
+    noise_seed: int = 0,
+    train: bool = True,
 ) -> None:
     """Render a physically based OLAT capture of a procedural translucent object (Mitsuba 3, volpath).
 
@@ -52,7 +50,17 @@ def synth(
         camera_radius: Distance of the cameras from the object centre (object radius 1).
         light_radius: Distance of the lights from the object centre.
         fov_x_deg: Horizontal field of view in degrees.
+        noise_seed: Non-zero: the same images with independent Monte Carlo noise (a second render of a
+            capture measures its noise ceiling: see benchmarks/quality.py).
+        train: Render the training lattice (--no-train: only the test split).
     """
+    from tqdm import tqdm
+
+    from diamond_sss.synth.materials import get_material
+    from diamond_sss.synth.render import SynthConfig, plan_pairs, synthesize
+    from diamond_sss.synth.scene import LightStageConfig
+    from diamond_sss.synth.shapes import shape_names
+
     if shape not in shape_names():
         raise ValueError(f"unknown shape {shape!r}; valid shapes: {', '.join(shape_names())}")
     get_material(material)
@@ -76,13 +84,10 @@ def synth(
         maps=maps,
         subset=subset,
         seed=seed,
+        noise_seed=noise_seed,
+        train=train,
     )
     total = sum(len(p) for p in plan_pairs(config).values())
     with tqdm(total=total, desc=f"synth {shape}/{material}", unit="img") as bar:
         synthesize(config, on_image=bar.update)
 
-
-if __name__ == "__main__":
-    import tyro
-
-    tyro.cli(synth)

@@ -1,0 +1,1 @@
+"""Experiments that train and evaluate: the multi-view loss ablation (supplement Tab. 2)."""

@@ -1,0 +1,39 @@
+"""Settings of the DIAMOND-SSS pipeline besides the reconstruction's own (no torch: the CLI derives its options)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from diamond_sss.utils.fields import described
+
+AUGMENTS = ("nvs", "relight")
+"""The diffusion stages, in the order they run."""
+
+
+@dataclass
+class PipelineConfig:
+    """Settings of :func:`~diamond_sss.pipeline.run.run_pipeline` besides the reconstruction's configuration."""
+
+    augment: tuple[str, ...] = described(AUGMENTS, "diffusion stages to run: a subset of nvs, relight")
+    prelim_iterations: int | None = described(None, "training steps of the preliminary reconstruction "
+                                                    "(default: the final reconstruction's)")
+    prelim_run: str | None = described(None, "a finished reconstruction of the same real images (a `train` run "
+                                             "folder with this regime and seed) reused as the preliminary one")
+    nvs_views: int = described(12, "at most this many missing views generated per real light (0: all)")
+    relight_lights: int = described(8, "at most this many missing lights generated per view (0: all)")
+    nvs_model: str | None = described(None, "folder of a novel-view model (default: the shipped one)")
+    relight_model: str | None = described(None, "folder of a relighting model (default: the shipped one)")
+    nvs_steps: int = described(1, "DDIM steps of the novel-view model (the shipped model is best with 1)")
+    relight_steps: int = described(1, "DDIM steps of the relighting model (the shipped model is best with 1)")
+    relight_samples: int = described(8, "relighting samples averaged per image (test-time ensemble)")
+    nvs_guidance: float = described(1.0, "classifier-free guidance scale of the novel-view model (1: none)")
+    min_silhouette_iou: float = described(0.5, "generated images whose mask has a lower IoU with the "
+                                               "preliminary reconstruction's silhouette are dropped")
+    min_mask_fraction: float = described(0.002, "generated images whose mask covers a smaller fraction of the "
+                                                "image are dropped")
+    min_real_share: float = described(0.5, "the real images are repeated in the final reconstruction's training "
+                                           "set until they make up at least this share of the images drawn "
+                                           "(0: each image once, as the paper)")
+    cache_dir: str | None = described(None, "cache of generated images (default: ~/.cache/diamond_sss or "
+                                            "$DIAMOND_SSS_CACHE)")
+    device: str = described("cpu", "cpu | cuda for the diffusion models (reconstructions use --set device=...)")

@@ -1,0 +1,190 @@
+"""Resolve a :class:`~diamond_sss.training.config.TrainConfig` from a preset and overrides.
+
+Overrides come from a JSON ``--config FILE``, a mapping (``overrides=``) or ``--set key=value`` strings. A
+mapping may be nested (``{"losses": {"lambda_dssim": 0.3}}``, the layout of a run's ``config.json``), dotted
+(``{"losses.lambda_dssim": 0.3}``) or flat (``{"lambda_dssim": 0.3}``, the layout of runs and tuning studies
+made before the groups), or a mix. The resolved configuration is saved in the run, nested.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from diamond_sss.errors import DataError
+from diamond_sss.training.config import (
+    FIELDS,
+    GROUPS,
+    PRESETS,
+    TrainConfig,
+    canonical_key,
+    field_types,
+    schedule_for,
+)
+from diamond_sss.utils.io import read_json
+
+
+def parse_value(key: str, text: str) -> Any:
+    """Parse the string ``text`` as the type of (dotted or flat) ``key``; clear errors for unknown keys and
+    bad values."""
+    kind = field_types()[canonical_key(key)]
+    text = text.strip()
+    if kind is bool:
+        lowered = text.lower()
+        if lowered in ("1", "true", "yes", "on"):
+            return True
+        if lowered in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"config key '{key}' expects true/false, got '{text}'")
+    if kind not in (int, float):
+        return text
+    try:
+        number = float(text)
+        if kind is int and not number.is_integer():
+            raise ValueError
+    except ValueError as exc:
+        raise ValueError(f"config key '{key}' expects {kind.__name__}, got '{text}'") from exc
+    return int(number) if kind is int else _finite(key, number)
+
+
+def _finite(key: str, value: float) -> float:
+    if not math.isfinite(value):
+        raise ValueError(f"config key '{key}' must be a finite number, got {value}")
+    return value
+
+
+def _checked(key: str, value: Any) -> Any:
+    kind = field_types()[canonical_key(key)]
+    if isinstance(value, str) and kind is not str:
+        return parse_value(key, value)
+    if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return _finite(key, float(value))
+    if kind is int and isinstance(value, float) and value.is_integer():
+        return int(value)
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise ValueError(f"config key '{key}' expects {kind.__name__}, got {value!r}")
+    return value
+
+
+def checked_values(values: Mapping[str, Any]) -> dict[str, Any]:
+    """Dotted key -> checked value of a nested, dotted or flat mapping of config keys (later keys win)."""
+    checked: dict[str, Any] = {}
+    for key, value in values.items():
+        if key in GROUPS and isinstance(value, Mapping):
+            checked.update(checked_values({f"{key}.{name}": inner for name, inner in value.items()}))
+        else:
+            checked[canonical_key(key)] = _checked(key, value)
+    return checked
+
+
+def parse_sets(sets: Sequence[str]) -> dict[str, Any]:
+    """``["key=value", ...]`` (as given to ``--set``; dotted or flat keys, kept as given) -> typed values."""
+    parsed: dict[str, Any] = {}
+    for item in sets:
+        if "=" not in item:
+            raise ValueError(f"--set expects key=value, got '{item}'")
+        key, text = item.split("=", 1)
+        parsed[key.strip()] = parse_value(key.strip(), text)
+    return parsed
+
+
+def with_values(config: TrainConfig, values: Mapping[str, Any]) -> TrainConfig:
+    """A copy of ``config`` with the checked ``values`` (by dotted key) applied; ``config`` is unchanged."""
+    groups: dict[str, dict[str, Any]] = {}
+    for dotted, value in values.items():
+        group, name = dotted.split(".")
+        groups.setdefault(group, {})[name] = value
+    config = copy.deepcopy(config)
+    return dataclasses.replace(config, **{group: dataclasses.replace(getattr(config, group), **changed)
+                                          for group, changed in groups.items()})
+
+
+def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = None,
+                config_file: Path | None = None, sets: Sequence[str] = ()) -> TrainConfig:
+    """Resolve a configuration: preset, then ``config_file`` (JSON object), then ``overrides``, then ``sets``.
+
+    ``sets`` are ``"key=value"`` strings as given to ``--set``.
+    """
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset '{preset}'; presets: {sorted(PRESETS)}")
+    values: dict[str, Any] = {}
+    if config_file is not None:
+        path = Path(config_file)
+        if not path.is_file():
+            raise ValueError(f"config file not found: {path}")
+        loaded = read_json(path)
+        if not isinstance(loaded, dict):
+            raise ValueError(f"{path}: expected a JSON object of config keys")
+        try:
+            values.update(checked_values(loaded))
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from exc
+    values.update(checked_values(overrides or {}))
+    values.update(checked_values(parse_sets(sets)))
+    config = with_values(PRESETS[preset], values)
+    validate_config(config)
+    return config
+
+
+POSITIVE_KEYS = ("schedule.iterations", "schedule.batch_size", "gaussians.count", "gaussians.max_count",
+                 "shading.sss_width", "runtime.checkpoint_every", "runtime.log_every", "densify.refine_every",
+                 "raytrace.every", "multiview.target_downscale")
+
+CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"),
+           "losses.photometric_space": ("linear", "srgb"), "multiview.target_mode": ("nearest-k", "random")}
+
+
+def validate_config(config: TrainConfig) -> None:
+    """Reject values that cannot work, naming the key."""
+    for key in POSITIVE_KEYS:
+        if config.get(key) <= 0:
+            raise ValueError(f"config key '{key}' must be positive, got {config.get(key)}")
+    for f in dataclasses.fields(config.losses):
+        value = getattr(config.losses, f.name)
+        if (f.name.startswith("lambda_") or f.name == "synthetic_weight") and not value >= 0:
+            raise ValueError(f"config key 'losses.{f.name}' must be >= 0, got {value}")
+    for key, choices in CHOICES.items():
+        if config.get(key) not in choices:
+            raise ValueError(f"config key '{key}' must be {'|'.join(choices)}, got '{config.get(key)}'")
+    device = config.runtime.device
+    if device not in ("auto", "cpu", "cuda") and not device.startswith("cuda:"):
+        raise ValueError(f"config key 'runtime.device' must be auto|cpu|cuda[:i], got '{device}'")
+    if config.runtime.downscale < 1:
+        raise ValueError(f"config key 'runtime.downscale' must be >= 1, got {config.runtime.downscale}")
+
+
+def describe_config(preset: str = "diamond") -> list[tuple[str, str, Any, str]]:
+    """``(dotted key, flat name, value, meaning)`` of every :class:`TrainConfig` field under ``preset``."""
+    config = make_config(preset)
+    return [(key, f.metadata.get("flat", f.name), config.get(key), f.metadata["help"])
+            for key, f in FIELDS.items()]
+
+
+def scaled_run_schedule(preset: str, iterations: int, config_file: Path | None = None,
+                        sets: Sequence[str] = ()) -> tuple[dict[str, Any], dict[str, tuple[Any, Any]]]:
+    """Overrides (dotted keys) that scale the schedule of ``preset`` (+ ``config_file``) to ``iterations``
+    steps, and the changed keys as ``key -> (before, after)``. Keys given in ``sets`` keep their ``--set``
+    value."""
+    config = make_config(preset, config_file=config_file)
+    base = {key: config.get(key) for key in FIELDS}
+    fixed = {canonical_key(key) for key in parse_sets(sets)}
+    scaled = {key: value for key, value in schedule_for(base, iterations).items() if key not in fixed}
+    changes = {key: (base[key], value) for key, value in scaled.items()
+               if key != "schedule.iterations" and value != base[key]}
+    return scaled, changes
+
+
+def load_run_config(run: Path) -> TrainConfig:
+    """The resolved configuration saved in a run folder (``config.json``, nested or flat)."""
+    path = Path(run) / "config.json"
+    if not path.is_file():
+        raise ValueError(f"{run} is not a training run: {path} is missing")
+    try:
+        return make_config("diamond", config_file=path)
+    except ValueError as exc:
+        message = str(exc)
+        raise DataError(message if message.startswith(f"{path}:") else f"{path}: {message}") from exc

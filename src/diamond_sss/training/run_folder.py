@@ -1,0 +1,49 @@
+"""A finished run folder: its configuration and trained scene (what evaluation, the viewer and export read).
+
+Only the configuration and the scene's I/O are imported here, not the training loop.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from diamond_sss.scene.io import read_scene
+from diamond_sss.scene.model import RelightableScene
+from diamond_sss.training.config import TrainConfig
+from diamond_sss.training.overrides import load_run_config
+
+
+def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[RelightableScene, TrainConfig]:
+    """The trained scene and configuration of a run folder."""
+    cfg = load_run_config(run_dir)
+    path = Path(run_dir) / "model.safetensors"
+    if not path.is_file():
+        raise ValueError(f"{run_dir}: no trained model ({path} is missing; is the run finished?)")
+    return read_scene(path, cfg.shading, device), cfg
+
+
+RESUMABLE_KEYS = frozenset({"iterations", "log_every", "checkpoint_every", "image_log_every", "device",
+                            "cpu_threads"})
+"""Settings a resumed run may change: its length, logging and where it runs; any other change would continue a
+model with settings it was not trained with (or fail to load it, e.g. another MLP width)."""
+
+
+def changed_settings(run_dir: Path, cfg: TrainConfig) -> dict[str, tuple]:
+    """``flat key -> (recorded, given)`` for the settings of ``cfg`` that differ from those the run folder
+    records (empty when it records none), :data:`RESUMABLE_KEYS` aside."""
+    if not (Path(run_dir) / "config.json").is_file():
+        return {}
+    recorded, given = load_run_config(run_dir).flat(), cfg.flat()
+    return {key: (recorded[key], value) for key, value in given.items()
+            if key not in RESUMABLE_KEYS and recorded.get(key) != value}
+
+
+def check_resumable(run_dir: Path, cfg: TrainConfig) -> None:
+    """Refuse to resume ``run_dir`` with other settings than it was trained with, naming them."""
+    changed = changed_settings(run_dir, cfg)
+    if changed:
+        listed = ", ".join(f"{key}: {old!r} -> {new!r}" for key, (old, new) in sorted(changed.items()))
+        raise ValueError(f"{run_dir} was trained with other settings ({listed}); resume it with the same settings "
+                         "or train into another --out")

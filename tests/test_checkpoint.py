@@ -1,0 +1,60 @@
+"""One checkpoint module: 8-digit step folders, older 7-digit folders still found and ordered by step."""
+
+import json
+import shutil
+
+import torch
+
+from diamond_sss.diffusion.common.runtime import make_accelerator
+from diamond_sss.training.checkpoint import (
+    checkpoint_folders,
+    latest_accelerate_checkpoint,
+    resume_checkpoint,
+    save_accelerate_checkpoint,
+    save_checkpoint,
+    step_folder_name,
+)
+
+
+def _save(run_dir, step):
+    weight = torch.nn.Parameter(torch.full((2,), float(step)))
+    optimizer = torch.optim.Adam([weight], lr=0.1)
+    weight.sum().backward()
+    optimizer.step()
+    return save_checkpoint(run_dir, step, {"w": weight.detach()}, {"w": optimizer}, {}, {"note": step})
+
+
+def _rename_to_seven_digits(folder):
+    old = folder.with_name(f"step_{int(folder.name[5:]):07d}")
+    shutil.move(folder, old)
+    return old
+
+
+def test_step_folders_have_eight_digits():
+    assert step_folder_name(500) == "step_00000500"
+
+
+def test_an_old_seven_digit_trainer_checkpoint_resumes_and_is_pruned_by_step(tmp_path):
+    for step in (4, 5):
+        old = _rename_to_seven_digits(_save(tmp_path, step))
+    (tmp_path / "checkpoints" / "latest.json").write_text(json.dumps({"step": 5, "dir": old.name}))
+    found, loaded = resume_checkpoint(tmp_path)
+    assert found.name == "step_0000005"
+    assert loaded.step == 5 and loaded.extra == {"note": 5}
+    assert torch.equal(loaded.scene["w"], torch.full((2,), 5.0) - 0.1)
+    _save(tmp_path, 6)
+    names = sorted(p.name for p in (tmp_path / "checkpoints").iterdir() if p.is_dir())
+    assert names == ["step_00000006", "step_0000005"]
+    (tmp_path / "checkpoints" / "latest.json").unlink()  # without the pointer: newest step first
+    assert [p.name for p in checkpoint_folders(tmp_path)] == ["step_00000006", "step_0000005"]
+    assert resume_checkpoint(tmp_path)[0].name == "step_00000006"
+
+
+def test_accelerate_checkpoints_of_both_paddings_are_ordered_by_step(tmp_path):
+    accelerator = make_accelerator()
+    accelerator.prepare(torch.nn.Linear(2, 2))
+    _rename_to_seven_digits(save_accelerate_checkpoint(accelerator, tmp_path, 12, keep=0))
+    save_accelerate_checkpoint(accelerator, tmp_path, 3, keep=0)
+    assert latest_accelerate_checkpoint(tmp_path).name == "step_0000012"
+    save_accelerate_checkpoint(accelerator, tmp_path, 13, keep=2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["step_00000013", "step_0000012"]

@@ -1,0 +1,96 @@
+"""Command-line options derived from the config dataclasses: every field reachable, each default in one place."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from diamond_sss.cli.main import main
+from diamond_sss.cli.options import config_from, options_of
+from diamond_sss.pipeline.config import PipelineConfig
+
+
+@pytest.fixture
+def captured_pipeline(monkeypatch):
+    import diamond_sss.pipeline.run as pipeline_run
+
+    seen = {}
+
+    def fake_run_pipeline(data, out, **kwargs):
+        seen.update(kwargs)
+        return {}
+
+    monkeypatch.setattr(pipeline_run, "run_pipeline", fake_run_pipeline)
+    return seen
+
+
+def test_run_reaches_every_pipeline_field_with_the_configs_defaults(tmp_path, captured_pipeline, capsys):
+    base = ["run", "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--quiet"]
+    main([*base, "--augment", "none"])
+    assert captured_pipeline["config"] == PipelineConfig(augment=())
+    main([*base, "--augment", "relight", "--prelim-iterations", "5", "--nvs-guidance", "2.5",
+          "--min-silhouette-iou", "0.3", "--min-mask-fraction", "0.01", "--relight-samples", "2", "--device", "cuda",
+          "--set", "losses.lambda_dssim=0.3", "--iterations", "7", "--seed", "3"])
+    assert captured_pipeline["config"] == PipelineConfig(
+        augment=("relight",), prelim_iterations=5, nvs_guidance=2.5, min_silhouette_iou=0.3, min_mask_fraction=0.01,
+        relight_samples=2, device="cuda")
+    assert captured_pipeline["overrides"] == {"losses.lambda_dssim": 0.3, "iterations": 7}
+    assert captured_pipeline["seed"] == 3
+
+
+def test_options_of_keeps_names_types_defaults_and_help():
+    options = options_of(PipelineConfig, exclude=("augment",))
+    names = [f.name for f in dataclasses.fields(PipelineConfig)]
+    assert [f.name for f in dataclasses.fields(options)] == names[1:]
+    assert all(getattr(options(), name) == getattr(PipelineConfig(), name) for name in names[1:])
+    assert config_from(PipelineConfig, options(nvs_views=3), augment=("nvs",)) == PipelineConfig(
+        augment=("nvs",), nvs_views=3)
+
+
+def test_finetune_nvs_options_are_finetune_config_and_nvs_config_fields(tmp_path, monkeypatch):
+    import diamond_sss.diffusion.nvs.train as nvs_train
+    from diamond_sss.diffusion.nvs.config import FinetuneConfig, NVSConfig
+
+    seen = {}
+    monkeypatch.setattr(nvs_train, "finetune", lambda data, out, config, **_: seen.update(config=config) or out)
+    base = ["finetune-nvs", "--out", str(tmp_path / "run"), "--data", str(tmp_path)]
+    main(base)
+    assert seen["config"] == FinetuneConfig()  # every default from the configs (warp hint on in pixel space)
+    main([*base, "--steps", "2000", "--learning-rate", "3e-4", "--prediction-type", "v_prediction",
+          "--no-gradient-checkpointing", "--hint-residual", "--log-every", "5"])  # the shipped recipe (README)
+    assert seen["config"] == FinetuneConfig(steps=2000, learning_rate=3e-4, gradient_checkpointing=False, log_every=5,
+                                            model=NVSConfig(prediction_type="v_prediction", hint_residual=True))
+    main([*base, "--space", "latent", "--vae", str(tmp_path / "vae")])
+    assert seen["config"].model == NVSConfig(space="latent", vae_path=str(tmp_path / "vae"), warp_hint=False)
+
+
+def test_finetune_relight_options_are_train_config_and_model_config_fields(tmp_path, monkeypatch):
+    import diamond_sss.diffusion.relight.data as relight_data
+    import diamond_sss.diffusion.relight.model as relight_model
+    import diamond_sss.diffusion.relight.train as relight_train
+    from diamond_sss.diffusion.relight.config import (
+        RelightAugmentConfig,
+        RelightModelConfig,
+        RelightTrainConfig,
+    )
+
+    seen = {}
+
+    def fake_from_config(config, seed):
+        seen.update(model=config, seed=seed)
+        return relight_model.RelightDiffusion.__new__(relight_model.RelightDiffusion)
+
+    monkeypatch.setattr(relight_model.RelightDiffusion, "from_config", staticmethod(fake_from_config))
+    monkeypatch.setattr(relight_model.RelightDiffusion, "config", RelightModelConfig(), raising=False)
+    monkeypatch.setattr(relight_data, "load_finetune_views", lambda resolution: seen.update(resolution=resolution))
+    monkeypatch.setattr(relight_train, "finetune", lambda views, out, model, config, **_: seen.update(config=config))
+    base = ["finetune-relight", "--out", str(tmp_path / "run"), "--quiet"]
+    main(base)
+    assert seen["config"] == RelightTrainConfig() and seen["model"] == RelightModelConfig() and seen["seed"] == 0
+    main([*base, "--steps", "2000", "--batch-size", "6", "--learning-rate", "1e-3", "--cycle-every", "2",
+          "--no-shading-hint", "--resolution", "32", "--seed", "4", "--no-augment"])
+    assert seen["config"] == RelightTrainConfig(steps=2000, batch_size=6, learning_rate=1e-3, cycle_every=2, seed=4,
+                                                augment=RelightAugmentConfig.off())
+    assert seen["model"] == RelightModelConfig(resolution=32, shading_hint=False, residual=False)
+    assert seen["seed"] == 4

@@ -1,0 +1,82 @@
+"""The one schedule scaler: train --iterations, the demo's short schedule and the tuning trials."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from diamond_sss.cli.main import main
+from diamond_sss.data.analytic import make_capture
+from diamond_sss.training.config import scale_schedule, schedule_for, short_schedule
+from diamond_sss.training.overrides import load_run_config, scaled_run_schedule
+
+DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, and the short-run model (issue 17)
+    "iterations": 1000, "position_lr_max_steps": 1000, "batch_size": 1, "num_gaussians": 3000,
+    "max_gaussians": 8000, "densify_from_iter": 250, "densify_until_iter": 850, "densification_interval": 125,
+    "opacity_reset_interval": 10001, "mv_pairs_per_step": 1, "mv_pixels_per_pair": 256, "raytrace_gaussians": 512,
+    "log_every": 50, "checkpoint_every": 500, "sss_lr": 0.005, "sss_width": 64, "lambda_incident_light": 0.0,
+}
+
+
+def test_demo_overrides_are_unchanged():
+    assert short_schedule(1000) == DEMO_OVERRIDES_1000
+    for n in (150, 300, 400, 1000, 1234):
+        scaled = short_schedule(n)
+        assert (scaled["densify_from_iter"], scaled["densification_interval"]) == (n // 4, n // 8)
+        assert (scaled["log_every"], scaled["checkpoint_every"]) == (n // 20, n // 2)
+        assert scaled["opacity_reset_interval"] > n  # never reset in a short run
+
+
+def test_scale_schedule_rounds_down_keeps_zero_and_other_keys():
+    values = {"densify_from_iter": 500, "densification_interval": 150, "position_lr_delay_steps": 0,
+              "lambda_dssim": 0.2, "num_gaussians": 5000}
+    assert scale_schedule(values, 0.05, floors={}) == {"densify_from_iter": 25, "densification_interval": 7,
+                                                       "position_lr_delay_steps": 0, "lambda_dssim": 0.2,
+                                                       "num_gaussians": 5000}
+    assert scale_schedule(values, 1e-6, floors={})["densification_interval"] == 1
+    floored = scale_schedule({**values, "opacity_reset_interval": 3000}, 0.005)
+    assert (floored["densification_interval"], floored["opacity_reset_interval"]) == (10, 200)
+    assert floored["densify_from_iter"] == 2
+    assert scale_schedule({"densification_interval": 4}, 0.5)["densification_interval"] == 4  # below its floor
+    assert scale_schedule({"densify_until_iter": 850}, 0.15)["densify_until_iter"] == 127  # 127.5 down
+    with pytest.raises(ValueError, match="schedule scale must be positive"):
+        scale_schedule(values, 0.0)
+    with pytest.raises(ValueError, match="iterations must be positive, got 0"):
+        schedule_for({"iterations": 10}, 0)
+
+
+def test_run_schedule_scales_the_preset_and_config_file_but_not_set_keys(tmp_path):
+    scaled, changes = scaled_run_schedule("diamond", 1000)
+    assert scaled["schedule.iterations"] == 1000 and scaled["densify.refine_start_iter"] == 50
+    assert (scaled["densify.refine_stop_iter"], scaled["densify.refine_every"]) == (1000, 15)
+    assert (scaled["runtime.checkpoint_every"], scaled["lr.position_max_steps"]) == (50, 3000)
+    assert scaled["densify.reset_every"] == 200  # 100 scaled, kept at the recovery floor
+    assert changes["densify.refine_start_iter"] == (500, 50) and "lr.position_delay_steps" not in changes
+    best = tmp_path / "best.json"
+    best.write_text(json.dumps({"densify_from_iter": 800}))
+    scaled, _ = scaled_run_schedule("sss3dgs", 500, config_file=best, sets=["checkpoint_every=7"])
+    assert scaled["densify.refine_start_iter"] == 40 and scaled["densify.refine_stop_iter"] == 750
+    assert "runtime.checkpoint_every" not in scaled
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_train_iterations_scales_the_schedule_unless_kept(tmp_path, capsys, keep):
+    make_capture(tmp_path / "data", views=3, lights=2, size=12)
+    run = tmp_path / "run"
+    tiny = ["--set", "num_gaussians=100", "--set", "lambda_lpips=0", "--set", "raytrace_gaussians=16",
+            "--set", "mv_pixels_per_pair=8", "--set", "batch_size=1", "--set", "device=cpu"]
+    main(["train", "--data", str(tmp_path / "data"), "--out", str(run), "--iterations", "4", "--quiet",
+          "--set", "log_every=2", *tiny, *(["--keep-schedule"] if keep else [])])
+    out = capsys.readouterr().out
+    assert json.loads((run / "config.json").read_text())["schedule"]["iterations"] == 4  # written nested
+    config = load_run_config(run).flat()
+    assert config["iterations"] == 4 and config["log_every"] == 2
+    if keep:
+        assert "schedule scaled" not in out
+        assert (config["densify_from_iter"], config["checkpoint_every"]) == (500, 500)
+    else:
+        assert "schedule scaled to 4 steps" in " ".join(out.split())
+        assert "densify.refine_start_iter 500->1" in " ".join(out.split())
+        assert (config["densify_from_iter"], config["densify_until_iter"], config["checkpoint_every"]) == (1, 4, 1)
+        assert (run / "checkpoints" / "latest.json").is_file()
