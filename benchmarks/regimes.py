@@ -96,12 +96,21 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     return folder / "final", metrics
 
 
-def finished(run: Path) -> bool:
-    """Whether ``run`` (a training run or a pipeline folder) holds a finished, evaluated reconstruction."""
-    if (run / "model.safetensors").is_file():
-        return True
+def recorded(run: Path) -> tuple[Path, dict] | None:
+    """The final run folder and test metrics (+ image counts) that ``run`` (a training run or a pipeline folder)
+    recorded when it was evaluated, or ``None``."""
+    metrics_file = run / "eval_test" / "metrics.json"
+    if metrics_file.is_file():
+        real = len(json.loads((run / "regime.json").read_text())["observations"])
+        return run, {**json.loads(metrics_file.read_text()), "real_images": real, "synthetic_images": 0,
+                     "real_share": 1.0}
     manifest = run / "pipeline.json"
-    return manifest.is_file() and "eval" in json.loads(manifest.read_text()).get("stages", {})
+    stages = json.loads(manifest.read_text()).get("stages", {}) if manifest.is_file() else {}
+    if "eval" not in stages:
+        return None
+    final = stages["final"]
+    return run / "final", {**stages["eval"], **{key: final[key] for key in ("real_images", "synthetic_images",
+                                                                          "real_share")}}
 
 
 def mean_rows(rows: list[dict]) -> list[dict]:
@@ -146,7 +155,7 @@ def markdown(rows: list[dict], iterations: int, note: str) -> str:
         images = f"{r.get('real_images', '')} / {r['synthetic_images']:.0f}"
         lines.append(f"| {r['object']} | `{r['regime']}` | {label} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
                      f"{r['mask_iou']:.3f} | {images} |")
-    return "\n".join([*lines, "", "Targets:", *target_lines(rows)]) + "\n"
+    return "\n".join([*lines, "", "Targets:", *target_lines([*rows, *mean_rows(rows)])]) + "\n"
 
 
 def main() -> None:
@@ -163,7 +172,7 @@ def main() -> None:
                         help="the pipeline rows' min_real_share values (a lever): real images at least this share "
                              "of the images drawn")
     parser.add_argument("--note", default="", help="a line for the Markdown (machine, date)")
-    parser.add_argument("--collect-only", action="store_true", help="report the finished runs, train nothing")
+    parser.add_argument("--collect-only", action="store_true", help="report what the finished runs recorded (no training, no evaluation)")
     parser.add_argument("--out", type=Path, default=RUNS)
     parser.add_argument("--results", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -176,10 +185,13 @@ def main() -> None:
         for regime, method, share in jobs:
             name = variant_name(method, share)
             runs = args.out / data.name / regime_slug(regime)
-            if args.collect_only and not finished(runs / name):
-                continue
             started = time.perf_counter()
-            final, metrics = run_method(method, data, runs, regime, args.iterations, share)
+            if args.collect_only:
+                if (found := recorded(runs / name)) is None:
+                    continue
+                final, metrics = found
+            else:
+                final, metrics = run_method(method, data, runs, regime, args.iterations, share)
             finals[data.name, regime, name] = final
             rows.append({"object": data.name, "regime": regime, "method": name,
                          "minutes": (time.perf_counter() - started) / 60,
