@@ -170,7 +170,7 @@ def test_epoch_order_is_a_permutation_drawn_once_per_epoch():
     assert seeded_epoch_indices(2, 3, 7, seed=3) == order[6:9]
 
 
-def test_resume_with_other_settings_is_refused_naming_them(tmp_path):
+def test_resume_with_other_settings_is_refused_naming_them(tmp_path, caplog):
     from diamond_sss.data.analytic import make_capture
     from diamond_sss.data.dataset import OLATDataset
     from diamond_sss.training.overrides import make_config
@@ -185,6 +185,13 @@ def test_resume_with_other_settings_is_refused_naming_them(tmp_path):
     longer = make_config("diamond", overrides={**base, "iterations": 3})
     assert changed_settings(tmp_path / "run", longer) == {}  # a longer run may resume
     Trainer(longer, sources, tmp_path / "run", show_progress=False).run(resume=True)
+    summary = tmp_path / "run" / "train_summary.json"
+    written = summary.stat().st_mtime_ns
+    again = Trainer(longer, sources, tmp_path / "run", show_progress=False)
+    with caplog.at_level(logging.INFO, logger="diamond_sss.training.trainer"):
+        result = again.run(resume=True)  # finished: nothing is retrained or rewritten
+    assert "already trained for 3 steps" in caplog.text and summary.stat().st_mtime_ns == written
+    assert result.steps == 3 and again.scene.gaussians.num_gaussians == 50
     wider = make_config("diamond", overrides={**base, "iterations": 3, "sss_width": 16})
     with pytest.raises(ValueError, match=r"other settings \(sss_width: 32 -> 16\)"):
         Trainer(wider, sources, tmp_path / "run", show_progress=False).run(resume=True)

@@ -13,6 +13,7 @@ from diamond_sss.scene.io import read_scene
 from diamond_sss.scene.model import RelightableScene
 from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.overrides import load_run_config
+from diamond_sss.utils.io import read_json
 
 
 def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[RelightableScene, TrainConfig]:
@@ -47,3 +48,13 @@ def check_resumable(run_dir: Path, cfg: TrainConfig) -> None:
         listed = ", ".join(f"{key}: {old!r} -> {new!r}" for key, (old, new) in sorted(changed.items()))
         raise ValueError(f"{run_dir} was trained with other settings ({listed}); resume it with the same settings "
                          "or train into another --out")
+
+
+def finished_summary(run_dir: Path, iterations: int) -> dict | None:
+    """What a run recorded (``train_summary.json``) when it finished ``iterations`` steps and wrote its model;
+    ``None`` otherwise (resuming it then continues from its newest checkpoint)."""
+    summary_path, model_path = Path(run_dir) / "train_summary.json", Path(run_dir) / "model.safetensors"
+    if not (summary_path.is_file() and model_path.is_file()):
+        return None
+    summary = read_json(summary_path)
+    return summary if summary.get("steps") == iterations else None

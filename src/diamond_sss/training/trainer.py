@@ -31,7 +31,7 @@ from diamond_sss.gaussians.model import GAUSSIAN_PARAMS, GaussianModel
 from diamond_sss.losses.lpips import load_lpips
 from diamond_sss.losses.multiview import MultiViewConfig, multiview_losses_batched, sample_foreground_pixels
 from diamond_sss.losses.regularizers import raytrace_visibility_loss
-from diamond_sss.scene.io import save_scene, scene_from_tensors, scene_tensors
+from diamond_sss.scene.io import read_scene, save_scene, scene_from_tensors, scene_tensors
 from diamond_sss.scene.model import RelightableScene
 from diamond_sss.shading.raytrace import raytraced_visibility
 from diamond_sss.shading.sh import visibility_from_sh
@@ -40,7 +40,7 @@ from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.lattice import unify_lattices
 from diamond_sss.training.loss_log import LossLog
 from diamond_sss.training.objective import TargetBatch, image_objective
-from diamond_sss.training.run_folder import check_resumable
+from diamond_sss.training.run_folder import check_resumable, finished_summary
 from diamond_sss.training.schedules import exponential_lr, step_decay
 from diamond_sss.utils import rng
 from diamond_sss.utils.device import resolve_device
@@ -373,6 +373,12 @@ class Trainer:
         if self.run_dir is not None:
             if resume:
                 check_resumable(self.run_dir, cfg)
+                if (finished := finished_summary(self.run_dir, cfg.schedule.iterations)) is not None:
+                    logger.info("%s: already trained for %d steps", self.run_dir, finished["steps"])
+                    self.scene = read_scene(self.run_dir / "model.safetensors", cfg.shading, self.device)
+                    return TrainResult(steps=finished["steps"], seconds=finished["seconds"],
+                                       num_gaussians=finished["num_gaussians"], final_loss=finished["final_loss"],
+                                       history=finished.get("history", []))
             self.run_dir.mkdir(parents=True, exist_ok=True)
             atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
         scene, optimizers, strategy_state, start_step, history, elapsed = self._start(resume, scene, earlier_run)
