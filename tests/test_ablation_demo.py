@@ -51,3 +51,18 @@ def test_demo_writes_report(capture, tmp_path, capsys):
     stages = json.loads((tmp_path / "diamond" / "pipeline.json").read_text())["stages"]
     assert list(stages) == ["final", "eval"] and stages["final"]["real_share"] == 1.0
     assert "PSNR" in capsys.readouterr().out
+
+
+def test_demo_reuses_finished_runs_and_moves_aside_runs_made_with_other_settings(capture, tmp_path, capsys):
+    args = ["demo", "--data", str(capture), "--out", str(tmp_path), "--augment", "none",
+            "--regime", "views=2,lights=1", "--quiet", "--no-dense"]
+    main([*args, "--iterations", "2"])
+    summary = tmp_path / "sss3dgs" / "train_summary.json"
+    written = summary.stat().st_mtime_ns
+    main([*args, "--iterations", "2"])  # finished: reused, not retrained
+    assert summary.stat().st_mtime_ns == written and "moved aside" not in capsys.readouterr().out
+    main([*args, "--iterations", "3"])  # another schedule: the old run is kept aside, a new one is made
+    assert "moved aside" in capsys.readouterr().out
+    aside = [p for p in tmp_path.iterdir() if p.name.startswith("sss3dgs.")]
+    assert len(aside) == 1 and (aside[0] / "model.safetensors").is_file()
+    assert json.loads(summary.read_text())["steps"] == 3

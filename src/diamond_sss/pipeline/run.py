@@ -43,7 +43,7 @@ from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.trainer import ImageSource
-from diamond_sss.utils.io import atomic_write_json, sha256_file, sha256_json
+from diamond_sss.utils.io import atomic_write_json, move_aside, sha256_file, sha256_json
 
 
 @dataclass
@@ -94,14 +94,7 @@ def move_aside_if_changed(out: Path, inputs: dict) -> Path | None:
     previous = recorded.get("inputs")
     if previous == inputs:
         return None
-    stem = f"{out.name}.{sha256_json(previous)[:8]}"
-    target = out.with_name(stem)
-    suffix = 2
-    while target.exists():
-        target = out.with_name(f"{stem}-{suffix}")
-        suffix += 1
-    out.rename(target)
-    return target
+    return move_aside(out, sha256_json(previous)[:8])
 
 
 def shipped_augments() -> tuple[str, ...]:

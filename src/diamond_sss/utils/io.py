@@ -108,6 +108,19 @@ def read_json(path: str | os.PathLike) -> Any:
         raise DamagedFileError(f"{path}: damaged or invalid JSON ({exc})") from exc
 
 
+def move_aside(folder: Path, tag: str) -> Path:
+    """Rename ``folder`` to ``<folder>.<tag>`` (``-2``, ``-3``, ... if taken) and return the new path; nothing is
+    deleted. Used for run folders made with other inputs than a job now asks for."""
+    folder = Path(folder)
+    target = folder.with_name(f"{folder.name}.{tag}")
+    suffix = 2
+    while target.exists():
+        target = folder.with_name(f"{folder.name}.{tag}-{suffix}")
+        suffix += 1
+    folder.rename(target)
+    return target
+
+
 def sha256_bytes(data: bytes) -> str:
     """Hex SHA-256 of ``data``."""
     return hashlib.sha256(data).hexdigest()
