@@ -10,7 +10,7 @@ split with independent Monte Carlo noise (``evaluation/noise.py``), rendered onc
     python benchmarks/quality.py --iterations 1000 --render-noise-reference \\
         --variants base "srgb:photometric_space=srgb" "mlp64:sss_width=64,sss_lr=0.005"
 
-Runs go to outputs/benchmarks/quality/<regime>/<variant>-<hash of its settings> (resumable); the table,
+Runs go to outputs/benchmarks/quality/<data>/<regime>/<variant>-<hash of its settings> (resumable); the table,
 JSON and region figures to benchmarks/results/quality/.
 """
 
@@ -91,7 +91,7 @@ def main() -> None:
     rows = []
     for name, overrides in map(parse_variant, args.variants):
         settings = {**short_schedule(args.iterations), **overrides}
-        run = args.out / regime_slug(args.regime) / f"{name}-{settings_hash(args.preset, settings)}"
+        run = args.out / data.name / regime_slug(args.regime) / f"{name}-{settings_hash(args.preset, settings)}"
         started = time.perf_counter()
         result = train_run(data, run, regime=args.regime, preset=args.preset, overrides=settings, resume=True,
                            show_progress=False)
