@@ -36,10 +36,11 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
                       show_progress=not quiet)
     for folder in result.moved:
         console.print(f"a run made with other settings was moved aside to {folder}")
-    table = Table(title=result.title)
+    table = Table(title=result.title, caption="SSS-3DGS: real images only; DIAMOND-SSS: the full pipeline; "
+                  "dense: all images")
     for column in COLUMNS:
-        table.add_column(column)
+        table.add_column(column, no_wrap=column == "method")
     for row in result.rows:
-        table.add_row(row.label, *row.cells())
+        table.add_row(row.label.split(" (")[0], *row.cells())
     console.print(table)
     console.print(f"report: {result.report}\nfigure: {result.figure}")
