@@ -100,7 +100,7 @@ def main() -> None:
         fit = evaluate_run(run, data, split="train", figures=0, max_images=TRAIN_IMAGES, show_progress=False)
         scene, _ = load_scene(run, torch.device("cpu"))
         regions = region_errors(scene, test).summary()
-        save_region_figure(args.results / f"regions_{name}.png", scene, test, [0, len(test) // 3, 2 * len(test) // 3],
+        save_region_figure(args.results / f"regions_{args.tag}_{name}.png", scene, test, [0, len(test) // 3, 2 * len(test) // 3],
                            title=f"{name}: {args.iterations} steps, test PSNR {scores['psnr']:.2f} dB")
         rows.append({"variant": name, "overrides": overrides, "preset": args.preset, "regime": args.regime,
                      "iterations": args.iterations, "gaussians": result.num_gaussians, "minutes": minutes,
