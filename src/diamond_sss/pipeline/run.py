@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,12 +34,13 @@ import torch
 
 from diamond_sss.data.dataset import OLATDataset, directions_from
 from diamond_sss.data.images import load_rgba
-from diamond_sss.data.regimes import farthest_point_order, select_regime
+from diamond_sss.data.regimes import RegimeSelection, farthest_point_order, select_regime
 from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, read_image_manifest
 from diamond_sss.evaluation.metrics import mask_iou
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
 from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
+from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
@@ -82,6 +84,17 @@ class PipelineManifest:
     def record(self, stage: StageRecord) -> None:
         self.data["stages"][stage.name] = {"seconds": round(stage.seconds, 3), **stage.counts}
         atomic_write_json(self.path, self.data)
+
+    def stage(self, name: str, body: Callable[[], dict]) -> dict:
+        """The record of stage ``name``: the recorded one when it finished before, else ``body()``'s counts,
+        timed and recorded."""
+        finished = self.done(name)
+        if finished is not None:
+            return finished
+        started = time.perf_counter()
+        counts = body()
+        self.record(StageRecord(name, time.perf_counter() - started, counts))
+        return self.done(name)
 
 
 def move_aside_if_changed(out: Path, inputs: dict) -> Path | None:
@@ -176,20 +189,41 @@ def _silhouette_ok(path: Path, mask_path: Path | None, reference_alpha: torch.Te
     return True, "ok"
 
 
-def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "views=5%,lights=5%",
-                 preset: str = "diamond", overrides: dict[str, Any] | None = None, seed: int = 0,
-                 config: PipelineConfig | None = None, show_progress: bool = True,
-                 move_changed_run: bool = False) -> dict:
-    """Run the stages above into ``out``; returns the final evaluation (plus counts) as a dict.
+@dataclass
+class PipelineContext:
+    """What the stages share: the run's inputs, the real capture, the regime's selection, the preliminary
+    reconstruction's folder and the lattice's view and light directions."""
 
-    A previous run in ``out`` with other inputs is an error, or with ``move_changed_run`` is moved aside
-    (:func:`move_aside_if_changed`) and the run starts afresh."""
+    data: Path
+    out: Path
+    split: str
+    regime: str
+    preset: str
+    overrides: dict[str, Any]
+    seed: int
+    cfg: PipelineConfig
+    train_cfg: TrainConfig
+    real: OLATDataset
+    selection: RegimeSelection
+    prelim_dir: Path
+    view_dirs: torch.Tensor
+    light_dirs: torch.Tensor
+    show_progress: bool
+
+
+def _checked_config(config: PipelineConfig | None) -> PipelineConfig:
     cfg = config or PipelineConfig()
     unknown = set(cfg.augment) - set(AUGMENTS)
     if unknown:
         raise ValueError(f"--augment: unknown stage(s) {sorted(unknown)}; use none or a subset of {AUGMENTS}")
     if not 0.0 <= cfg.min_real_share < 1.0:
         raise ValueError(f"pipeline config 'min_real_share' must be in [0, 1), got {cfg.min_real_share}")
+    return cfg
+
+
+def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, overrides: dict[str, Any] | None,
+                seed: int, cfg: PipelineConfig, show_progress: bool) -> tuple[PipelineContext, dict]:
+    """The shared state of a pipeline run into ``out`` (created) and its inputs as ``pipeline.json`` records them."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     overrides = {**(overrides or {}), "seed": seed}
@@ -214,145 +248,198 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     if cfg.prelim_run and cfg.augment:
         prelim_dir = check_prelim_run(Path(cfg.prelim_run), data, split, selection.observations)
         inputs["prelim_model_hash"] = sha256_file(prelim_dir / "model.safetensors")
-    if move_changed_run and (moved := move_aside_if_changed(out, inputs)) is not None:
-        print(f"{out}: the inputs changed (models, data or settings); the previous run was moved to {moved}")
-        out.mkdir(parents=True, exist_ok=True)
-    manifest = PipelineManifest(out / "pipeline.json", inputs)
-    real_views = set(selection.views)
-    real_lights = set(selection.lights)
     center = real.bounds.center
-    view_dirs = directions_from(real.camera_centers, center)
-    light_dirs = directions_from(real.light_positions, center)
+    ctx = PipelineContext(data, out, split, regime, preset, overrides, seed, cfg, train_cfg, real, selection,
+                          prelim_dir, directions_from(real.camera_centers, center),
+                          directions_from(real.light_positions, center), show_progress)
+    return ctx, inputs
 
-    def stage(name: str, body) -> dict:
-        finished = manifest.done(name)
-        if finished is not None:
-            return finished
-        started = time.perf_counter()
-        counts = body()
-        manifest.record(StageRecord(name, time.perf_counter() - started, counts))
-        return manifest.done(name)
 
-    def prelim_stage() -> dict:
-        if cfg.prelim_run:
-            return {"real_images": len(selection.observations), "reused": str(prelim_dir)}
-        prelim_overrides = dict(overrides)
-        if cfg.prelim_iterations is not None:
-            prelim_overrides.update(iterations=cfg.prelim_iterations,
-                                    position_lr_max_steps=cfg.prelim_iterations)
-        result = train_run(data, prelim_dir, split=split, regime=regime, preset=preset, overrides=prelim_overrides,
-                           show_progress=show_progress, resume=True)
-        return {"real_images": len(selection.observations), "steps": result.steps}
+class SilhouetteFilter:
+    """Keeps the generated images whose mask is not empty and matches the preliminary reconstruction's silhouette
+    (:func:`_silhouette_ok`) and counts the dropped ones by reason; each view's silhouette is rendered once."""
 
-    if cfg.augment:
-        stage("prelim", prelim_stage)
-    generated: list[GeneratedImage] = []
-    dropped: dict[str, int] = {}
-    prelim_alpha: dict[int, torch.Tensor] = {}
-    prelim_scene = []
+    def __init__(self, ctx: PipelineContext) -> None:
+        self.ctx = ctx
+        self.dropped: dict[str, int] = {}
+        self._alpha: dict[int, torch.Tensor] = {}
+        self._scene = None
 
-    def reference_alpha(view: int) -> torch.Tensor:
-        if view not in prelim_alpha:
-            if not prelim_scene:
-                prelim_scene.append(load_scene(prelim_dir)[0])
-            scene = prelim_scene[0]
-            camera, light = real.cameras[view], real.lights[0]
+    def reference_alpha(self, view: int) -> torch.Tensor:
+        """The preliminary reconstruction's alpha at lattice view ``view`` under the first light."""
+        if view not in self._alpha:
+            if self._scene is None:
+                self._scene = load_scene(self.ctx.prelim_dir)[0]
+            camera, light = self.ctx.real.cameras[view], self.ctx.real.lights[0]
             with torch.no_grad():
-                render = scene.render(camera.w2c[None], camera.K[None], camera.width, camera.height,
-                                      light.position[None], light.intensity[None])
-            prelim_alpha[view] = render.gbuffer.alpha[0]
-        return prelim_alpha[view]
+                render = self._scene.render(camera.w2c[None], camera.K[None], camera.width, camera.height,
+                                            light.position[None], light.intensity[None])
+            self._alpha[view] = render.gbuffer.alpha[0]
+        return self._alpha[view]
 
-    def keep(item: GeneratedImage) -> bool:
-        ok, reason = _silhouette_ok(item.image, item.mask, reference_alpha(item.view), cfg)
-        if not ok:
-            dropped[reason] = dropped.get(reason, 0) + 1
-        return ok
+    def keep(self, items: list[GeneratedImage]) -> list[GeneratedImage]:
+        """The ``items`` that pass, in order; the others are counted in :attr:`dropped`."""
+        kept = []
+        for item in items:
+            ok, reason = _silhouette_ok(item.image, item.mask, self.reference_alpha(item.view), self.ctx.cfg)
+            if ok:
+                kept.append(item)
+            else:
+                self.dropped[reason] = self.dropped.get(reason, 0) + 1
+        return kept
 
-    nvs_dir = out / "nvs"
-    if "nvs" in cfg.augment:
-        missing = [v for v in range(real.num_views) if v not in real_views]
-        targets = spread_subset(missing, view_dirs, cfg.nvs_views, seed)
 
-        def nvs_stage() -> dict:
-            from diamond_sss.diffusion.geometry.sources import RenderedGeometry
-            from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
+def prelim_stage(ctx: PipelineContext) -> dict:
+    """The preliminary reconstruction on the regime's real images (or the reused ``prelim_run``)."""
+    if ctx.cfg.prelim_run:
+        return {"real_images": len(ctx.selection.observations), "reused": str(ctx.prelim_dir)}
+    prelim_overrides = dict(ctx.overrides)
+    if ctx.cfg.prelim_iterations is not None:
+        prelim_overrides.update(iterations=ctx.cfg.prelim_iterations,
+                                position_lr_max_steps=ctx.cfg.prelim_iterations)
+    result = train_run(ctx.data, ctx.prelim_dir, split=ctx.split, regime=ctx.regime, preset=ctx.preset,
+                       overrides=prelim_overrides, show_progress=ctx.show_progress, resume=True)
+    return {"real_images": len(ctx.selection.observations), "steps": result.steps}
 
-            geometry = RenderedGeometry(prelim_dir, device=cfg.device)
-            calls = 0
-            for light in sorted(real_lights):
-                sources = [v for v in sorted(real_views) if bool(real.presence[v, light])]
-                if not sources or not targets:
-                    continue
-                nearest: dict[int, list[int]] = {}
-                for target in targets:
-                    similarity = view_dirs[sources] @ view_dirs[target]
-                    nearest.setdefault(sources[int(torch.argmax(similarity))], []).append(target)
-                for reference, group in nearest.items():
-                    generate_novel_views(data, nvs_dir / f"l{light:03d}_v{reference:03d}", reference, light,
-                                         group, split=split, model_dir=cfg.nvs_model,
-                                         steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=seed,
-                                         cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
-                                         device=cfg.device, geometry=geometry)
-                    calls += 1
-            return {"targets": len(targets), "calls": calls}
 
-        stage("nvs", nvs_stage)
-        for manifest_path in sorted(nvs_dir.glob(f"*/{MANIFEST_NAME}")):
-            generated += [item for item in read_image_manifest(manifest_path) if keep(item)]
+def nvs_stage(ctx: PipelineContext) -> dict:
+    """Novel views into ``<out>/nvs``: under each real light, the (spread) missing views generated from the nearest
+    real view."""
+    from diamond_sss.diffusion.geometry.sources import RenderedGeometry
+    from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
 
-    relight_dir = out / "relight"
-    if "relight" in cfg.augment:
-        sources = [GeneratedImage(o.view, o.light, o.image_path, o.mask_path)
-                   for i, o in enumerate(real.observations) if i in set(selection.observations)] + generated
-        combined_json = write_capture(relight_dir, "sources", real, sources)
+    cfg, real = ctx.cfg, ctx.real
+    real_views = set(ctx.selection.views)
+    missing = [v for v in range(real.num_views) if v not in real_views]
+    targets = spread_subset(missing, ctx.view_dirs, cfg.nvs_views, ctx.seed)
+    geometry = RenderedGeometry(ctx.prelim_dir, device=cfg.device)
+    calls = 0
+    for light in sorted(set(ctx.selection.lights)):
+        sources = [v for v in sorted(real_views) if bool(real.presence[v, light])]
+        if not sources or not targets:
+            continue
+        nearest: dict[int, list[int]] = {}
+        for target in targets:
+            similarity = ctx.view_dirs[sources] @ ctx.view_dirs[target]
+            nearest.setdefault(sources[int(torch.argmax(similarity))], []).append(target)
+        for reference, group in nearest.items():
+            generate_novel_views(ctx.data, ctx.out / "nvs" / f"l{light:03d}_v{reference:03d}", reference, light,
+                                 group, split=ctx.split, model_dir=cfg.nvs_model,
+                                 steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=ctx.seed,
+                                 cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
+                                 device=cfg.device, geometry=geometry)
+            calls += 1
+    return {"targets": len(targets), "calls": calls}
 
-        def relight_stage() -> dict:
-            from diamond_sss.diffusion.common.cache import OutputCache
-            from diamond_sss.diffusion.geometry.sources import RenderedGeometry
-            from diamond_sss.diffusion.relight.inference import (
-                default_cache_root,
-                load_model,
-                relight_view,
-                write_relit,
-            )
 
-            model = load_model(cfg.relight_model, device=cfg.device)
-            geometry = RenderedGeometry(prelim_dir, device=cfg.device)
-            cache = OutputCache(Path(cfg.cache_dir) / "relight" if cfg.cache_dir else default_cache_root())
-            dataset = OLATDataset(relight_dir, "sources")
-            lights_of_view: dict[int, list[int]] = {}
-            for obs in dataset.observations:
-                lights_of_view.setdefault(obs.view, []).append(obs.light)
-            results = []
-            for view, lights in sorted(lights_of_view.items()):
-                missing = [light for light in range(real.num_lights) if light not in lights]
-                targets = spread_subset(missing, light_dirs, cfg.relight_lights, seed)
-                results += relight_view(model, dataset, view, lights[0], targets, geometry, cache,
-                                        num_steps=cfg.relight_steps, seed=seed, samples=cfg.relight_samples)
-            write_relit(relight_dir / "out", results)
-            return {"views": len(lights_of_view), "images": len(results), "sources_json": combined_json.name}
+def nvs_images(ctx: PipelineContext) -> list[GeneratedImage]:
+    """Every image the ``nvs`` stage generated, in folder order."""
+    return [item for path in sorted((ctx.out / "nvs").glob(f"*/{MANIFEST_NAME}")) for item in read_image_manifest(path)]
 
-        stage("relight", relight_stage)
-        generated += [item for item in read_image_manifest(relight_dir / "out" / MANIFEST_NAME) if keep(item)]
 
+def write_relight_sources(ctx: PipelineContext, generated: list[GeneratedImage]) -> Path:
+    """The regime's real images and the ``generated`` ones as the capture ``<out>/relight`` [sources]."""
+    chosen = set(ctx.selection.observations)
+    sources = [GeneratedImage(o.view, o.light, o.image_path, o.mask_path)
+               for i, o in enumerate(ctx.real.observations) if i in chosen] + generated
+    return write_capture(ctx.out / "relight", "sources", ctx.real, sources)
+
+
+def relight_stage(ctx: PipelineContext, sources_json: Path) -> dict:
+    """Every view of the sources capture relit from its first light to the (spread) lattice lights it lacks, into
+    ``<out>/relight/out``."""
+    from diamond_sss.diffusion.common.cache import OutputCache
+    from diamond_sss.diffusion.geometry.sources import RenderedGeometry
+    from diamond_sss.diffusion.relight.inference import (
+        default_cache_root,
+        load_model,
+        relight_view,
+        write_relit,
+    )
+
+    cfg, relight_dir = ctx.cfg, ctx.out / "relight"
+    model = load_model(cfg.relight_model, device=cfg.device)
+    geometry = RenderedGeometry(ctx.prelim_dir, device=cfg.device)
+    cache = OutputCache(Path(cfg.cache_dir) / "relight" if cfg.cache_dir else default_cache_root())
+    dataset = OLATDataset(relight_dir, "sources")
+    lights_of_view: dict[int, list[int]] = {}
+    for obs in dataset.observations:
+        lights_of_view.setdefault(obs.view, []).append(obs.light)
+    results = []
+    for view, lights in sorted(lights_of_view.items()):
+        missing = [light for light in range(ctx.real.num_lights) if light not in lights]
+        targets = spread_subset(missing, ctx.light_dirs, cfg.relight_lights, ctx.seed)
+        results += relight_view(model, dataset, view, lights[0], targets, geometry, cache,
+                                num_steps=cfg.relight_steps, seed=ctx.seed, samples=cfg.relight_samples)
+    write_relit(relight_dir / "out", results)
+    return {"views": len(lights_of_view), "images": len(results), "sources_json": sources_json.name}
+
+
+def relit_images(ctx: PipelineContext) -> list[GeneratedImage]:
+    """Every image the ``relight`` stage generated."""
+    return read_image_manifest(ctx.out / "relight" / "out" / MANIFEST_NAME)
+
+
+def final_sources(ctx: PipelineContext, generated: list[GeneratedImage],
+                  dropped: dict[str, int]) -> tuple[list[ImageSource], dict]:
+    """The final reconstruction's image sources besides the regime's real images (the ``generated`` ones written to
+    ``<out>/synthetic`` and the real ones repeated for ``min_real_share``) and the counts it records."""
+    num_real = len(ctx.selection.observations)
+    copies = real_copies(num_real, len(generated), ctx.cfg.min_real_share)
     extra = []
-    num_real = len(selection.observations)
-    copies = real_copies(num_real, len(generated), cfg.min_real_share)
     if generated:
-        write_capture(out / "synthetic", "train", real, generated)
-        extra = [ImageSource(real.subset(selection.observations), 1.0)] * copies + [
-            ImageSource(OLATDataset(out / "synthetic", "train", downscale=train_cfg.runtime.downscale),
-                        train_cfg.losses.synthetic_weight)]
-    final_dir = out / "final"
+        write_capture(ctx.out / "synthetic", "train", ctx.real, generated)
+        downscale = ctx.train_cfg.runtime.downscale
+        extra = [ImageSource(ctx.real.subset(ctx.selection.observations), 1.0)] * copies + [
+            ImageSource(OLATDataset(ctx.out / "synthetic", "train", downscale=downscale),
+                        ctx.train_cfg.losses.synthetic_weight)]
     counts = {"real_images": num_real, "synthetic_images": len(generated), "dropped": dropped,
               "real_share": round(num_real / (num_real + len(generated)), 4),
               "real_draw_share": round((1 + copies) * num_real / ((1 + copies) * num_real + len(generated)), 4)}
-    stage("final", lambda: {**counts, "dropped": dict(dropped),
-                            "steps": train_run(data, final_dir, split=split, regime=regime, preset=preset,
-                                               overrides=overrides, show_progress=show_progress, resume=True,
-                                               extra_sources=extra).steps})
+    return extra, counts
+
+
+def final_stage(ctx: PipelineContext, extra: list[ImageSource], counts: dict) -> dict:
+    """The final reconstruction into ``<out>/final`` on the real images and the ``extra`` sources."""
+    result = train_run(ctx.data, ctx.out / "final", split=ctx.split, regime=ctx.regime, preset=ctx.preset,
+                       overrides=ctx.overrides, show_progress=ctx.show_progress, resume=True, extra_sources=extra)
+    return {**counts, "steps": result.steps}
+
+
+def eval_stage(ctx: PipelineContext) -> dict:
+    """The final reconstruction's metrics on the test split."""
+    return evaluate_run(ctx.out / "final", ctx.data, split="test", show_progress=ctx.show_progress)
+
+
+def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "views=5%,lights=5%",
+                 preset: str = "diamond", overrides: dict[str, Any] | None = None, seed: int = 0,
+                 config: PipelineConfig | None = None, show_progress: bool = True,
+                 move_changed_run: bool = False) -> dict:
+    """Run the stages above into ``out``; returns the final evaluation (plus counts) as a dict.
+
+    A previous run in ``out`` with other inputs is an error, or with ``move_changed_run`` is moved aside
+    (:func:`move_aside_if_changed`) and the run starts afresh."""
+    cfg = _checked_config(config)
+    ctx, inputs = prepare_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides, seed=seed,
+                              cfg=cfg, show_progress=show_progress)
+    if move_changed_run and (moved := move_aside_if_changed(ctx.out, inputs)) is not None:
+        print(f"{ctx.out}: the inputs changed (models, data or settings); the previous run was moved to {moved}")
+        ctx.out.mkdir(parents=True, exist_ok=True)
+    manifest = PipelineManifest(ctx.out / "pipeline.json", inputs)
+    if cfg.augment:
+        manifest.stage("prelim", lambda: prelim_stage(ctx))
+    silhouettes = SilhouetteFilter(ctx)
+    generated: list[GeneratedImage] = []
+    if "nvs" in cfg.augment:
+        manifest.stage("nvs", lambda: nvs_stage(ctx))
+        generated += silhouettes.keep(nvs_images(ctx))
+    if "relight" in cfg.augment:
+        sources_json = write_relight_sources(ctx, generated)
+        manifest.stage("relight", lambda: relight_stage(ctx, sources_json))
+        generated += silhouettes.keep(relit_images(ctx))
+    extra, counts = final_sources(ctx, generated, silhouettes.dropped)
+    manifest.stage("final", lambda: final_stage(ctx, extra, counts))
     if not (Path(data) / "transforms_test.json").is_file():
         return {**counts, "note": f"no transforms_test.json in {data}: evaluation skipped"}
-    metrics = stage("eval", lambda: evaluate_run(final_dir, data, split="test", show_progress=show_progress))
+    metrics = manifest.stage("eval", lambda: eval_stage(ctx))
     return {**metrics, **counts}
