@@ -94,3 +94,25 @@ def test_finetune_relight_options_are_train_config_and_model_config_fields(tmp_p
                                                 augment=RelightAugmentConfig.off())
     assert seen["model"] == RelightModelConfig(resolution=32, shading_hint=False, residual=False)
     assert seen["seed"] == 4
+
+
+def test_seed_and_device_flags_left_out_keep_the_config_files_values(tmp_path, monkeypatch):
+    """train --seed/--device and ablate --seed override their config keys only when given: a value from
+    --config (e.g. tune's best configuration) or --set is not replaced by the flag's default; --set wins over the
+    flag, as in make_config."""
+    import diamond_sss.training.run as training_run
+    from diamond_sss.experiments import ablation
+
+    seen = {}
+    monkeypatch.setattr(training_run, "train_run", lambda data, out, **kwargs: seen.update(kwargs) or
+                        dataclasses.make_dataclass("R", ["steps", "seconds", "num_gaussians", "final_loss"])(1, 0, 1, 0))
+    base = ["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--quiet"]
+    main(base)
+    assert seen["overrides"] == {}
+    main([*base, "--seed", "5", "--device", "cpu"])
+    assert seen["overrides"] == {"seed": 5, "device": "cpu"}
+    monkeypatch.setattr(ablation, "run_ablation", lambda data, out, **kwargs: seen.update(kwargs) or [])
+    main(["ablate", "--data", str(tmp_path), "--out", str(tmp_path / "ablation"), "--set", "seed=3"])
+    assert seen["overrides"] == {"seed": 3}
+    main(["ablate", "--data", str(tmp_path), "--out", str(tmp_path / "ablation"), "--seed", "4"])
+    assert seen["overrides"] == {"seed": 4}

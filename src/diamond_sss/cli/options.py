@@ -17,6 +17,12 @@ SetArg = Annotated[list[str], tyro.conf.UseAppendAction,
 """``--set key=value`` (repeatable), parsed by :func:`diamond_sss.training.overrides.parse_sets`."""
 
 
+def given_overrides(**options: object) -> dict:
+    """The config keys among ``options`` the user gave (not None): a flag left out keeps the value of
+    ``--config`` or the preset, so each default lives once, in the config."""
+    return {key: value for key, value in options.items() if value is not None}
+
+
 def options_of(config: type, exclude: Collection[str] = (), include: Collection[str] | None = None) -> type:
     """A dataclass of ``config``'s fields (those in ``include`` if given, but ``exclude``) for tyro: the same
     names, types and defaults, with each field's ``metadata["help"]`` or else its entry in the ``Attributes:``

@@ -9,13 +9,13 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from diamond_sss.cli.options import SetArg
+from diamond_sss.cli.options import SetArg, given_overrides
 
 
 def train(data: Path, out: Path, split: str = "train", regime: str = "all", preset: str = "diamond",
           iterations: int | None = None, keep_schedule: bool = False, config: Path | None = None,
-          set_: SetArg = [], seed: int = 0, resume: bool = False, device: str = "auto",  # noqa: B006
-          quiet: bool = False) -> None:
+          set_: SetArg = [], seed: int | None = None, resume: bool = False,  # noqa: B006
+          device: str | None = None, quiet: bool = False) -> None:
     """Reconstruct a relightable translucent object from an OLAT data set (SSS-3DGS backbone).
 
     Args:
@@ -29,16 +29,17 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
             are scaled by iterations / the preset's iterations.
         keep_schedule: with --iterations, keep the preset's step-valued keys as they are.
         config: JSON file of config keys (e.g. the best configuration written by `diamond-sss tune`).
-        seed: seed of the regime selection, initialisation and every random draw.
+        seed: seed of the regime selection, initialisation and every random draw (schedule.seed; default:
+            --config's, else the preset's).
         resume: continue from the newest checkpoint in --out.
-        device: auto | cpu | cuda.
+        device: auto | cpu | cuda (runtime.device; default: --config's, else the preset's).
         quiet: no progress bar.
     """
     from diamond_sss.training.overrides import scaled_run_schedule
     from diamond_sss.training.run import train_run
 
     console = Console(soft_wrap=True)
-    overrides: dict = {"seed": seed, "device": device}
+    overrides = given_overrides(seed=seed, device=device)
     if iterations is not None and keep_schedule:
         overrides["iterations"] = iterations
     elif iterations is not None:
@@ -183,7 +184,8 @@ def view(run: Path, port: int = 8080, host: str = "127.0.0.1", resolution: int =
 
 def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5%,lights=5%", "views=3%,lights=3%"],  # noqa: B006
            variants: list[str] = ["sss3dgs", "diamond-no-mv", "+silhouette", "+depth", "+both"],  # noqa: B006
-           iterations: int = 400, set_: SetArg = [], seed: int = 0, quiet: bool = False) -> None:  # noqa: B006
+           iterations: int = 400, set_: SetArg = [], seed: int | None = None,  # noqa: B006
+           quiet: bool = False) -> None:
     """Ablate the multi-view silhouette and depth losses (supplement Tab. 2) over capture regimes.
 
     Trains every variant on every regime (resumable run folders under --out), scores each on the test split
@@ -195,12 +197,12 @@ def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5%,lights=
         regimes: capture regimes to compare.
         variants: sss3dgs | diamond-no-mv | +silhouette | +depth | +both.
         iterations: training steps per run.
-        seed: seed of every run.
+        seed: seed of every run (schedule.seed; default: the preset's).
         quiet: no progress bars.
     """
     from diamond_sss.experiments.ablation import ablation_table, run_ablation
     from diamond_sss.training.overrides import parse_sets
 
-    rows = run_ablation(data, out, variants=variants, regimes=regimes, iterations=iterations, overrides=parse_sets(set_),
-                        seed=seed, show_progress=not quiet)
+    rows = run_ablation(data, out, variants=variants, regimes=regimes, iterations=iterations,
+                        overrides={**given_overrides(seed=seed), **parse_sets(set_)}, show_progress=not quiet)
     Console().print(ablation_table(rows))

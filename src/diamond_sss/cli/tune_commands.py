@@ -7,13 +7,13 @@ from pathlib import Path
 import tyro
 from rich.console import Console
 
-from diamond_sss.cli.options import SetArg
+from diamond_sss.cli.options import SetArg, given_overrides
 
 
 def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: str | None = None,
          study: str = "diamond-sss", split: str = "train", preset: str = "diamond", iterations: int = 500,
          report_every: int = 100, validation_images: int | None = None, schedule_scale: float | None = None,
-         set_: SetArg = [], seed: int = 0, worker: int = 0, device: str = "auto",  # noqa: B006
+         set_: SetArg = [], seed: int | None = None, worker: int = 0, device: str | None = None,  # noqa: B006
          timeout: float | None = None, heartbeat_interval: int = 60, pruner_startup_trials: int = 3,
          enqueue_presets: bool = True, report_only: bool = False) -> None:
     """Search the loss weights and densification schedule (Fig. 5 / Tab. 4) on your capture with Optuna.
@@ -38,9 +38,10 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
         report_every: steps between validation PSNR reports to the pruner.
         validation_images: held-out images (default: 10% of the selection, 1 to 8).
         schedule_scale: factor on the iteration-valued keys (default iterations / 10000).
-        seed: seed of the regime, the validation split, training and the sampler.
+        seed: seed of the regime, the validation split, training and the sampler (schedule.seed; default: the
+            preset's).
         worker: index of this worker (give each worker of a shared study its own).
-        device: auto | cpu | cuda.
+        device: auto | cpu | cuda (runtime.device; default: the preset's).
         timeout: stop starting trials after this many seconds.
         heartbeat_interval: seconds between heartbeats; a trial silent for twice this is re-queued.
         pruner_startup_trials: completed trials before the median pruner starts pruning.
@@ -59,7 +60,7 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
     from diamond_sss.tuning.study import StudySettings, default_storage
     from diamond_sss.tuning.validation import load_tune_data
 
-    overrides = {"seed": seed, "device": device}
+    overrides = given_overrides(seed=seed, device=device)
     searched = {canonical_key(key) for key in SEARCH_SPACE}
     for key, value in parse_sets(set_).items():
         if canonical_key(key) in searched or canonical_key(key) == "schedule.iterations":
@@ -68,9 +69,10 @@ def tune(data: Path, out: Path, regime: str = "all", trials: int = 20, storage: 
         overrides[key] = value
     objective_settings = ObjectiveSettings(preset=preset, overrides=overrides, iterations=iterations,
                                            report_every=report_every, schedule_scale=schedule_scale)
+    trial_config = make_config(preset, overrides=overrides)
+    seed = trial_config.schedule.seed
     tune_data = load_tune_data(data, split=split, regime=regime, seed=seed,
-                               validation_images=validation_images,
-                               downscale=make_config(preset, overrides=overrides).runtime.downscale)
+                               validation_images=validation_images, downscale=trial_config.runtime.downscale)
     study_settings = StudySettings(storage=storage or default_storage(out), study_name=study, seed=seed,
                                    worker=worker, pruner_startup_trials=pruner_startup_trials,
                                    pruner_warmup_steps=report_every + 1,

@@ -46,8 +46,9 @@ def regime_slug(regime: str) -> str:
 
 def run_ablation(data: Path, out: Path, *, variants: Sequence[str] = tuple(VARIANTS),
                  regimes: Sequence[str] = REGIMES, iterations: int = 400, overrides: dict[str, Any] | None = None,
-                 seed: int = 0, show_progress: bool = True) -> list[AblationRow]:
-    """Train and evaluate every (variant, regime); write ``ablation.json``, ``ablation.md`` and a figure grid."""
+                 show_progress: bool = True) -> list[AblationRow]:
+    """Train and evaluate every (variant, regime) with ``overrides`` (config keys, the seed among them) under the
+    variant's own; write ``ablation.json``, ``ablation.md`` and a figure grid."""
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise ValueError(f"unknown ablation variants {unknown}; choose from {list(VARIANTS)}")
@@ -58,7 +59,7 @@ def run_ablation(data: Path, out: Path, *, variants: Sequence[str] = tuple(VARIA
             run = out / regime_slug(regime) / variant
             started = time.perf_counter()
             train_run(data, run, regime=regime, preset=preset, resume=True, show_progress=show_progress,
-                      overrides={**(overrides or {}), **variant_overrides, "iterations": iterations, "seed": seed})
+                      overrides={**(overrides or {}), **variant_overrides, "iterations": iterations})
             metrics = evaluate_run(run, data, split="test", figures=0, show_progress=show_progress)
             rows.append(AblationRow(variant, regime, metrics, time.perf_counter() - started))
     write_ablation_report(out, rows, data, iterations)
