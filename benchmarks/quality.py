@@ -1,7 +1,7 @@
 """Reconstruction quality and where its error is, beside the data's noise ceiling (issue 17).
 
 Each variant is a preset plus config overrides, trained on one capture regime with the same schedule
-(``short_schedule(--iterations)``), then scored on the test split (novel views under novel lights) and on
+(``short_schedule(--iterations)``, with the dense budget for ``--regime all``), then scored on the test split (novel views under novel lights) and on
 training images (can it fit at all?), with the test error split by region (``evaluation/regions.py``:
 silhouette, back-lit, cast shadow, highlight, lit). The noise ceiling comes from a second render of the test
 split with independent Monte Carlo noise (``evaluation/noise.py``), rendered once from the capture's
@@ -90,7 +90,7 @@ def main() -> None:
     args.results.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, overrides in map(parse_variant, args.variants):
-        settings = {**short_schedule(args.iterations), **overrides}
+        settings = {**short_schedule(args.iterations, dense=args.regime == "all"), **overrides}
         run = args.out / data.name / regime_slug(args.regime) / f"{name}-{settings_hash(args.preset, settings)}"
         started = time.perf_counter()
         result = train_run(data, run, regime=args.regime, preset=args.preset, overrides=settings, resume=True,

@@ -75,7 +75,7 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
                real_share: float = DEFAULT_SHARE) -> tuple[Path, dict]:
     """Train and evaluate one method in ``runs/<variant_name>``; returns its final run folder and test metrics
     (+ image counts). The pipeline methods reuse ``runs/sss3dgs`` as their preliminary reconstruction."""
-    overrides = short_schedule(iterations)
+    overrides = short_schedule(iterations, dense=method == "dense")
     if method in ("sss3dgs", "+mv", "dense"):
         run = runs / method
         if not (run / "model.safetensors").is_file():  # a finished run is not resumed (that retrains its last part)

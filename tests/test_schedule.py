@@ -11,11 +11,12 @@ from diamond_sss.data.analytic import make_capture
 from diamond_sss.training.config import scale_schedule, schedule_for, short_schedule
 from diamond_sss.training.overrides import load_run_config, scaled_run_schedule
 
-DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, and the short-run model (issue 17)
+DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, the short-run model and decay (issue 17)
     "iterations": 1000, "position_lr_max_steps": 1000, "batch_size": 1, "num_gaussians": 3000,
     "max_gaussians": 8000, "densify_from_iter": 250, "densify_until_iter": 850, "densification_interval": 125,
     "opacity_reset_interval": 10001, "mv_pairs_per_step": 1, "mv_pixels_per_pair": 256, "raytrace_gaussians": 512,
     "log_every": 50, "checkpoint_every": 500, "sss_lr": 0.005, "sss_width": 64, "lambda_incident_light": 0.0,
+    "lr_decay_step": 700, "lr_decay_factor": 0.3,
 }
 
 
@@ -26,6 +27,8 @@ def test_demo_overrides_are_unchanged():
         assert (scaled["densify_from_iter"], scaled["densification_interval"]) == (n // 4, n // 8)
         assert (scaled["log_every"], scaled["checkpoint_every"]) == (n // 20, n // 2)
         assert scaled["opacity_reset_interval"] > n  # never reset in a short run
+        assert scaled["lr_decay_step"] == 7 * n // 10  # the step decay at 70% of the run
+    assert short_schedule(1000, dense=True) == {**DEMO_OVERRIDES_1000, "batch_size": 2}
 
 
 def test_scale_schedule_rounds_down_keeps_zero_and_other_keys():

@@ -72,7 +72,8 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
              show_progress: bool = True) -> DemoResult:
     """SSS-3DGS (``sss3dgs`` preset, real images only), the DIAMOND-SSS pipeline (the SSS-3DGS run reused as its
     preliminary reconstruction, the shipped diffusion models, the final reconstruction with multi-view losses)
-    and, with ``dense``, DIAMOND-SSS on every image; all with ``short_schedule(iterations)``. Writes
+    and, with ``dense``, DIAMOND-SSS on every image; all with ``short_schedule(iterations)`` (the dense one with
+    its dense budget). Writes
     ``report.md`` and ``comparison.png`` into ``out``."""
     root = Path(data) if data is not None else embedded_dataset()
     out = Path(out)
@@ -94,7 +95,8 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
         show_progress=show_progress, move_changed_run=True))
     if dense:
         timed("dense reconstruction", out / "dense",
-              lambda: _reconstruction(root, out / "dense", "all", "diamond", overrides, show_progress, moved))
+              lambda: _reconstruction(root, out / "dense", "all", "diamond", short_schedule(iterations, dense=True),
+                                             show_progress, moved))
 
     title = f"{root.name}: novel views x novel lights (test split), regime {regime}"
     lines = [f"# DIAMOND-SSS demo: {root.name}", "",
