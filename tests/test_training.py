@@ -75,6 +75,11 @@ def test_overrides_sets_and_config_files(tmp_path):
         make_config(sets=["lambda_dssim"])
     with pytest.raises(ValueError, match="config key 'losses.lambda_mask' must be >= 0"):
         make_config(sets=["lambda_mask=-1"])
+    with pytest.raises(ValueError, match="config key 'lr.decay_factor' must be >= 0, got -1.0"):
+        make_config(sets=["lr.decay_factor=-1"])  # a negative rate would climb the loss without a word
+    with pytest.raises(ValueError, match="config key 'lr.sss' must be >= 0"):
+        make_config(sets=["sss_lr=-0.001"])
+    assert make_config(sets=["lr.decay_factor=0"]).lr.decay_factor == 0.0  # 0 freezes: allowed
     path.write_text(json.dumps({"lambda_normal": "high"}))
     with pytest.raises(ValueError, match=r"best.json: config key 'lambda_normal' expects float"):
         make_config(config_file=path)

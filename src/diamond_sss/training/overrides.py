@@ -143,10 +143,12 @@ def validate_config(config: TrainConfig) -> None:
     for key in POSITIVE_KEYS:
         if config.get(key) <= 0:
             raise ValueError(f"config key '{key}' must be positive, got {config.get(key)}")
-    for f in dataclasses.fields(config.losses):
-        value = getattr(config.losses, f.name)
-        if (f.name.startswith("lambda_") or f.name == "synthetic_weight") and not value >= 0:
-            raise ValueError(f"config key 'losses.{f.name}' must be >= 0, got {value}")
+    non_negative = [f"losses.{f.name}" for f in dataclasses.fields(config.losses)
+                    if f.name.startswith("lambda_") or f.name == "synthetic_weight"]
+    non_negative += [f"lr.{f.name}" for f in dataclasses.fields(config.lr) if f.type in (float, "float")]
+    for key in non_negative:
+        if not config.get(key) >= 0:
+            raise ValueError(f"config key '{key}' must be >= 0, got {config.get(key)}")
     for key, choices in CHOICES.items():
         if config.get(key) not in choices:
             raise ValueError(f"config key '{key}' must be {'|'.join(choices)}, got '{config.get(key)}'")
