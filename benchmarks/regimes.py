@@ -5,7 +5,8 @@ the dense reference (`dense`: the `diamond` preset on every image). Rows per obj
 `sss3dgs` (real images only); `+mv` (the `diamond` preset: + multi-view losses); `+relight` (+ relighting
 diffusion); `full` (+ novel-view diffusion: the full pipeline), plus the mean over objects. The pipeline rows
 reuse the `sss3dgs` run as their preliminary reconstruction and run once per --real-shares value (the pipeline's
-`min_real_share`; rows and folders of a value other than the default 0.5 are named e.g. `full_share0`). Every
+`min_real_share`; rows and folders of a value other than the default 0.5 are named e.g. `full_share0`) and per
+--agreement-powers value (the pipeline's `agreement_power`; other than the default 0: e.g. `full_agree1`). Every
 method trains for the same steps.
 Objects: data folders or `shape:material` pairs never used for fine-tuning the diffusion models (those are
 torus/jade, bust/marble, blob/soap, sphere/skin), rendered once with `diamond-sss synth` into
@@ -48,6 +49,7 @@ LABELS = {"sss3dgs": "sss3dgs (real images only)", "+mv": "+ multi-view losses",
 DEFAULT_OBJECTS = ("src/diamond_sss/assets/data/demo", "torus:soap", "blob:marble")
 METRICS = ("psnr", "ssim", "mask_iou")
 DEFAULT_SHARE = PipelineConfig().min_real_share
+DEFAULT_POWER = PipelineConfig().agreement_power
 
 
 def resolve_object(spec: str, size: int, spp: int) -> Path:
@@ -64,15 +66,30 @@ def resolve_object(spec: str, size: int, spp: int) -> Path:
     return folder
 
 
-def variant_name(method: str, real_share: float) -> str:
-    """``full`` at the pipeline's default real share, ``full_share0`` at 0, and so on; other methods as they are."""
-    if method in ("sss3dgs", "+mv", "dense") or real_share == DEFAULT_SHARE:
+def variant_name(method: str, real_share: float = DEFAULT_SHARE, agreement_power: float = DEFAULT_POWER,
+                 tag: str = "") -> str:
+    """``full`` at the pipeline's default real share and agreement power, ``full_share0`` at share 0,
+    ``full_agree1`` at power 1, ``full_<tag>`` with --pipeline-set, and so on; other methods as they are."""
+    if method in ("sss3dgs", "+mv", "dense"):
         return method
-    return f"{method}_share{round(100 * real_share)}"
+    share = "" if real_share == DEFAULT_SHARE else f"_share{round(100 * real_share)}"
+    power = "" if agreement_power == DEFAULT_POWER else f"_agree{agreement_power:g}"
+    return f"{method}{share}{power}{f'_{tag}' if tag else ''}"
+
+
+def variant_label(name: str) -> str:
+    """The table's label of a :func:`variant_name`, e.g. ``full_share30_agree0`` ->
+    ``+ novel views (full pipeline) [min_real_share 0.3, agreement_power 0]``."""
+    method, *suffixes = name.split("_")
+    settings = [f"min_real_share {int(suffix[5:]) / 100:g}" if suffix.startswith("share")
+                else f"agreement_power {suffix[5:]}" if suffix.startswith("agree") else suffix
+                for suffix in suffixes]
+    return LABELS[method] + (f" [{', '.join(settings)}]" if settings else "")
 
 
 def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int,
-               real_share: float = DEFAULT_SHARE) -> tuple[Path, dict]:
+               real_share: float = DEFAULT_SHARE, agreement_power: float = DEFAULT_POWER,
+               pipeline_set: dict[str, str] | None = None, tag: str = "") -> tuple[Path, dict]:
     """Train and evaluate one method in ``runs/<variant_name>``; returns its final run folder and test metrics
     (+ image counts). The pipeline methods reuse ``runs/sss3dgs`` as their preliminary reconstruction."""
     overrides = short_schedule(iterations, dense=method == "dense")
@@ -89,10 +106,11 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     if not (prelim / "model.safetensors").is_file():
         run_method("sss3dgs", data, runs, regime, iterations)
     augment = ("relight",) if method == "+relight" else ("nvs", "relight")
-    config = PipelineConfig(augment=augment, prelim_run=str(prelim), min_real_share=real_share)
-    folder = runs / variant_name(method, real_share)
-    metrics = run_pipeline(data, folder, regime=regime, preset="diamond", overrides=overrides, config=config,
-                           show_progress=False)
+    config = PipelineConfig(augment=augment, prelim_run=str(prelim), min_real_share=real_share,
+                            agreement_power=agreement_power)
+    folder = runs / variant_name(method, real_share, agreement_power, tag)
+    metrics = run_pipeline(data, folder, regime=regime, preset="diamond",
+                           overrides={**overrides, **(pipeline_set or {})}, config=config, show_progress=False)
     return folder / "final", metrics
 
 
@@ -150,8 +168,7 @@ def markdown(rows: list[dict], iterations: int, note: str) -> str:
              "| object | regime | stage | PSNR | SSIM | mask IoU | real / synthetic images |",
              "|---|---|---|---|---|---|---|"]
     for r in [*rows, *mean_rows(rows)]:
-        method, _, share = r["method"].partition("_share")
-        label = LABELS[method] + (f" [min_real_share {int(share) / 100:g}]" if share else "")
+        label = variant_label(r["method"])
         images = f"{r.get('real_images', '')} / {r['synthetic_images']:.0f}"
         lines.append(f"| {r['object']} | `{r['regime']}` | {label} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
                      f"{r['mask_iou']:.3f} | {images} |")
@@ -171,19 +188,30 @@ def main() -> None:
     parser.add_argument("--real-shares", nargs="+", type=float, default=[DEFAULT_SHARE],
                         help="the pipeline rows' min_real_share values (a lever): real images at least this share "
                              "of the images drawn")
+    parser.add_argument("--agreement-powers", nargs="+", type=float, default=[DEFAULT_POWER],
+                        help="the pipeline rows' agreement_power values (a lever): generated images that disagree "
+                             "with the preliminary reconstruction more than the median lose weight")
+    parser.add_argument("--pipeline-set", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="training settings of the pipeline rows' final reconstruction (needs --tag)")
+    parser.add_argument("--tag", default="", help="suffix of the pipeline rows' names with --pipeline-set")
     parser.add_argument("--note", default="", help="a line for the Markdown (machine, date)")
     parser.add_argument("--collect-only", action="store_true", help="report what the finished runs recorded (no training, no evaluation)")
     parser.add_argument("--out", type=Path, default=RUNS)
     parser.add_argument("--results", type=Path, default=RESULTS)
     args = parser.parse_args()
+    if bool(args.pipeline_set) != bool(args.tag):
+        parser.error("--pipeline-set and --tag go together (the tag names the rows and folders of those settings)")
+    pipeline_set = dict(item.split("=", 1) for item in args.pipeline_set)
     rows, finals = [], {}
     for spec in args.objects:
         data = resolve_object(spec, args.size, args.spp)
-        jobs = [(regime, method, share) for regime in args.regimes for method in args.methods
-                for share in (args.real_shares if method in ("+relight", "full") else [DEFAULT_SHARE])]
-        jobs += [] if args.no_dense else [("all", "dense", DEFAULT_SHARE)]
-        for regime, method, share in jobs:
-            name = variant_name(method, share)
+        pipeline_variants = [(share, power) for share in args.real_shares for power in args.agreement_powers]
+        jobs = [(regime, method, share, power) for regime in args.regimes for method in args.methods
+                for share, power in (pipeline_variants if method in ("+relight", "full")
+                                     else [(DEFAULT_SHARE, DEFAULT_POWER)])]
+        jobs += [] if args.no_dense else [("all", "dense", DEFAULT_SHARE, DEFAULT_POWER)]
+        for regime, method, share, power in jobs:
+            name = variant_name(method, share, power, args.tag)
             runs = args.out / data.name / regime_slug(regime)
             started = time.perf_counter()
             if args.collect_only:
@@ -191,7 +219,8 @@ def main() -> None:
                     continue
                 final, metrics = found
             else:
-                final, metrics = run_method(method, data, runs, regime, args.iterations, share)
+                final, metrics = run_method(method, data, runs, regime, args.iterations, share, power,
+                                            pipeline_set, args.tag)
             finals[data.name, regime, name] = final
             rows.append({"object": data.name, "regime": regime, "method": name,
                          "minutes": (time.perf_counter() - started) / 60,

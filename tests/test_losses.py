@@ -56,8 +56,18 @@ def test_l1_known_value_and_weights():
     pred = torch.zeros(2, 12, 12, 3)
     target = torch.stack([torch.full((12, 12, 3), 0.25), torch.full((12, 12, 3), 0.75)])
     assert l1_loss(pred, target).item() == pytest.approx(0.5)
-    assert l1_loss(pred, target, torch.tensor([1.0, 0.0])).item() == pytest.approx(0.25)
-    assert l1_loss(pred, target, torch.tensor([1.0, 0.5])).item() == pytest.approx((0.25 + 0.5 * 0.75) / 1.5)
+    assert l1_loss(pred, target, torch.tensor([1.0, 0.0])).item() == pytest.approx(0.125)
+    assert l1_loss(pred, target, torch.tensor([1.0, 0.5])).item() == pytest.approx((0.25 + 0.5 * 0.75) / 2)
+
+
+def test_weights_are_absolute_not_normalised_in_the_batch():
+    """A generated image (alpha = 0.5) counts half a real one also when it is alone in its batch: normalising by
+    the batch's weights made alpha a no-op at batch size 1 (the sparse regimes' CPU budget)."""
+    pred, target = torch.zeros(1, 12, 12, 3), torch.full((1, 12, 12, 3), 0.5)
+    real = photometric_loss(pred, target, 0.2, torch.tensor([1.0]))
+    generated = photometric_loss(pred, target, 0.2, torch.tensor([0.5]))
+    assert generated.item() == pytest.approx(0.5 * real.item(), rel=1e-6)
+    assert photometric_loss(pred, target, 0.2).item() == pytest.approx(real.item(), rel=1e-6)
 
 
 def test_ssim_identity_and_dissimilarity():
@@ -77,9 +87,9 @@ def test_photometric_loss_mixes_and_weights_per_image():
     ]
     assert photometric_loss(a, b, lam).item() == pytest.approx(float(sum(per_image) / 2), rel=1e-5)
     weights = torch.tensor([1.0, 0.5])  # a real and a synthetic image (alpha = 0.5)
-    expected = (per_image[0] + 0.5 * per_image[1]) / 1.5
+    expected = (per_image[0] + 0.5 * per_image[1]) / 2
     assert photometric_loss(a, b, lam, weights).item() == pytest.approx(float(expected), rel=1e-5)
-    assert photometric_loss(a, b, lam, 2 * weights).item() == pytest.approx(float(expected), rel=1e-5)
+    assert photometric_loss(a, b, lam, 2 * weights).item() == pytest.approx(float(2 * expected), rel=1e-5)
 
 
 def test_photometric_loss_gradient_and_errors():

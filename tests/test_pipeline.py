@@ -11,9 +11,12 @@ from tiny_models import TINY_NVS, TINY_RELIGHT
 
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
+from diamond_sss.data.conventions import linear_to_srgb
+from diamond_sss.data.images import to_srgb8, write_png
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.diffusion.relight.model import RelightDiffusion
+from diamond_sss.pipeline.agreement import agreement_factors, render_errors
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
 from diamond_sss.pipeline.run import (
     PipelineConfig,
@@ -23,6 +26,8 @@ from diamond_sss.pipeline.run import (
     spread_subset,
 )
 from diamond_sss.training.run import train_run
+from diamond_sss.training.run_folder import load_scene
+from diamond_sss.training.trainer import ImageSource
 from diamond_sss.utils.io import sha256_json
 
 TRAIN = {"num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "iterations": 2, "raytrace_gaussians": 32,
@@ -61,6 +66,47 @@ def test_real_copies():
     assert real_copies(10, 30, 0.25) == 0
 
 
+def test_agreement_factors():
+    errors = [0.1, 0.2, 0.4, 0.8]  # median 0.3
+    assert agreement_factors(errors, 1.0) == pytest.approx([1.0, 1.0, 0.75, 0.375])
+    assert agreement_factors(errors, 2.0) == pytest.approx([1.0, 1.0, 0.5625, 0.140625])
+    assert agreement_factors(errors, 0.0) == [1.0] * 4 and agreement_factors([], 1.0) == []
+    with pytest.raises(ValueError, match="agreement power must be >= 0"):
+        agreement_factors(errors, -1.0)
+
+
+def test_render_errors_against_the_preliminary_reconstruction(setup, tmp_path):
+    data = setup[0]
+    real = OLATDataset(data)
+    train_run(data, tmp_path / "base", regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
+    scene = load_scene(tmp_path / "base")[0]
+    camera, light = real.cameras[3], real.lights[2]
+    with torch.no_grad():
+        render = scene.render(camera.w2c[None], camera.K[None], camera.width, camera.height, light.position[None],
+                              light.intensity[None])
+    radiance, alpha = render.radiance[0], render.gbuffer.alpha[0]
+    same = write_png(tmp_path / "same.png", to_srgb8(radiance, alpha))
+    black = write_png(tmp_path / "black.png", to_srgb8(torch.zeros_like(radiance), alpha))
+    errors = render_errors(scene, real, [GeneratedImage(3, 2, same), GeneratedImage(3, 2, black)])
+    srgb = linear_to_srgb(radiance.clamp_min(0.0))
+    assert errors[0] < 2.0 / 255.0  # 8-bit quantisation only
+    assert errors[1] == pytest.approx(float((srgb * alpha).sum() / (3 * alpha.sum())), abs=2.0 / 255.0)
+    with pytest.raises(ValueError, match="generated image is 8x8"):
+        small = write_png(tmp_path / "small.png", to_srgb8(radiance[:8, :8], alpha[:8, :8]))
+        render_errors(scene, real, [GeneratedImage(3, 2, small)])
+
+
+def test_image_source_weights_per_image(setup):
+    real = OLATDataset(setup[0])
+    factors = tuple(i / len(real) for i in range(len(real)))
+    source = ImageSource(real, 0.5, factors)
+    assert source.weight_of(4) == pytest.approx(0.5 * 4 / len(real)) and ImageSource(real, 0.5).weight_of(4) == 0.5
+    with pytest.raises(ValueError, match=f"2 factors for the {len(real)} images"):
+        ImageSource(real, 0.5, (1.0, 1.0))
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        ImageSource(real, 0.5, (-1.0,) * len(real))
+
+
 def test_spread_subset():
     dirs = torch.nn.functional.normalize(torch.randn(10, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
     assert spread_subset([1, 4, 7], dirs, 0, 0) == [1, 4, 7]
@@ -71,7 +117,8 @@ def test_spread_subset():
 def test_pipeline_end_to_end_and_resume(setup, tmp_path):
     data, nvs, relight, cache = setup
     cfg = PipelineConfig(nvs_views=2, relight_lights=1, nvs_model=str(nvs), relight_model=str(relight),
-                         nvs_steps=2, relight_steps=2, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache))
+                         nvs_steps=2, relight_steps=2, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache),
+                         agreement_power=1.0)
     result = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg,
                           show_progress=False)
     manifest = json.loads((tmp_path / "pipeline.json").read_text())
@@ -82,6 +129,9 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
     assert manifest["stages"]["relight"]["images"] == 4
     assert result["synthetic_images"] == 6 and result["real_images"] == 2 and result["real_share"] == 0.25
     assert manifest["stages"]["final"]["real_share"] == 0.25
+    agreement = manifest["stages"]["final"]["agreement"]
+    # the 3 of 6 generated images above the median error lose weight
+    assert 0.0 < agreement["min_factor"] < agreement["mean_factor"] < 1.0 and agreement["down_weighted"] == 3
     assert {"psnr", "ssim", "mask_iou"} <= set(result)
     synthetic = OLATDataset(tmp_path / "synthetic", "train")
     assert len(synthetic) == 6 and synthetic.num_views == 6
@@ -110,6 +160,8 @@ def test_prelim_reuses_a_finished_reconstruction(setup, tmp_path):
     assert shared["real_share"] == 0.5 and shared["real_draw_share"] == 0.75  # the real images drawn 3x as often
     with pytest.raises(ValueError, match="'min_real_share' must be in"):
         run_pipeline(data, tmp_path / "bad", config=replace(cfg, min_real_share=1.0))
+    with pytest.raises(ValueError, match="'agreement_power' must be a finite number >= 0"):
+        run_pipeline(data, tmp_path / "bad", config=replace(cfg, agreement_power=float("nan")))
     with pytest.raises(ValueError, match=r"base/regime.json lists other images"):
         run_pipeline(data, tmp_path / "other", regime="views=3,lights=1", overrides=TRAIN, config=cfg,
                      show_progress=False)

@@ -185,6 +185,31 @@ def test_step_callback_sees_every_step_and_can_stop_the_run(capture, tmp_path):
         in_memory.run(resume=True)
 
 
+def test_visual_hull_from_the_generated_views_too(capture):
+    """``hull_masks=all`` carves the initial hull with every source's views (here the capture's own views 2-5
+    standing in for generated ones): a tighter hull around the analytic sphere (radius 0.5) than 2 real views
+    give; ``real`` ignores the extra views (the same points as training on the real images alone)."""
+    dataset = OLATDataset(capture)
+    real = dataset.subset([i for i, obs in enumerate(dataset.observations) if obs.view < 2])
+    extra = dataset.subset([i for i, obs in enumerate(dataset.observations) if obs.view >= 2])
+
+    def initial_means(hull_masks: str, sources: list[ImageSource]) -> torch.Tensor:
+        cfg = make_config("diamond", overrides={**TINY, "num_gaussians": 2000, "hull_masks": hull_masks})
+        trainer = Trainer(cfg, sources, None, show_progress=False)
+        means = trainer.build_scene().gaussians.means.detach()
+        assert trainer.init_source == "visual_hull"
+        return means
+
+    only_real = initial_means("real", [ImageSource(real)])
+    assert torch.equal(initial_means("real", [ImageSource(real), ImageSource(extra, 0.5)]), only_real)
+    carved = initial_means("all", [ImageSource(real), ImageSource(extra, 0.5)])
+    excess = {name: (means.norm(dim=-1) - 0.5).clamp_min(0).mean() for name, means in
+              (("real", only_real), ("all", carved))}
+    assert excess["all"] < 0.5 * excess["real"]
+    with pytest.raises(ValueError, match="gaussians.hull_masks"):
+        make_config("diamond", overrides={"hull_masks": "some"})
+
+
 def test_densification_changes_the_gaussian_count(capture, tmp_path):
     cfg = make_config("sss3dgs", overrides={**TINY, "iterations": 6, "densification_interval": 3,
                                             "densify_grad_threshold": 1e-7})

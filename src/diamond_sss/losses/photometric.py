@@ -5,7 +5,6 @@ Images are ``[B,H,W,C]`` channels-last float tensors (linear radiance during tra
 
 from __future__ import annotations
 
-import torch
 from pytorch_msssim import ssim as _msssim_ssim
 from torch import Tensor
 
@@ -55,25 +54,28 @@ def dssim_per_image(pred: Tensor, target: Tensor) -> Tensor:
 
 
 def weighted_mean(values: Tensor, weights: Tensor | None) -> Tensor:
-    """``sum_b w_b v_b / sum_b w_b`` (plain mean when ``weights`` is None). ``[B] -> []``.
+    """``(1/B) sum_b w_b v_b`` (plain mean when ``weights`` is None). ``[B] -> []``.
 
-    Weights must be non-negative: they are checked where they are made (``synthetic_weight`` in the
-    training config), not here, so that a training step never reads a value back from the device.
+    The weights are absolute, not normalised within the batch: an image of weight ``alpha`` contributes
+    ``alpha`` times what a real image (weight 1) does whatever else the batch holds, so that at batch size 1
+    and in a batch of generated images alone the down-weighting still acts (supplement Sec. C.2/C.3: the
+    generated images' photometric losses are down-weighted by alpha). Weights must be non-negative: they are
+    checked where they are made (the training config, the pipeline), not here, so that a training step never
+    reads a value back from the device.
     """
     if weights is None:
         return values.mean()
     _check_weights(weights, values.shape[0])
-    weights = weights.to(values)
-    return (weights * values).sum() / weights.sum().clamp_min(torch.finfo(values.dtype).tiny)
+    return (weights.to(values) * values).mean()
 
 
 def l1_loss(pred: Tensor, target: Tensor, weights: Tensor | None = None) -> Tensor:
-    """Per-image-weighted L1, ``sum_b w_b L1_b / sum_b w_b``. ``[B,H,W,C] -> []``."""
+    """Per-image-weighted L1, ``(1/B) sum_b w_b L1_b``. ``[B,H,W,C] -> []``."""
     return weighted_mean(l1_per_image(pred, target), weights)
 
 
 def dssim_loss(pred: Tensor, target: Tensor, weights: Tensor | None = None) -> Tensor:
-    """Per-image-weighted ``1 - SSIM``, ``sum_b w_b (1 - SSIM_b) / sum_b w_b``. ``[B,H,W,C] -> []``."""
+    """Per-image-weighted ``1 - SSIM``, ``(1/B) sum_b w_b (1 - SSIM_b)``. ``[B,H,W,C] -> []``."""
     return weighted_mean(dssim_per_image(pred, target), weights)
 
 
@@ -82,7 +84,7 @@ def photometric_loss(
 ) -> Tensor:
     """Mixed photometric objective of Eq. A.1.
 
-    ``L = sum_b w_b [(1 - l) L1_b + l (1 - SSIM_b)] / sum_b w_b`` with ``l = lambda_dssim`` in ``[0, 1]``.
+    ``L = (1/B) sum_b w_b [(1 - l) L1_b + l (1 - SSIM_b)]`` with ``l = lambda_dssim`` in ``[0, 1]``.
     ``weights [B]`` are per-image weights (e.g. ``alpha = 0.5`` for diffusion-generated images, 1 for
     real ones); ``None`` weighs every image 1. ``[B,H,W,C] -> []``.
     """

@@ -31,6 +31,9 @@ class PipelineConfig:
                                                "preliminary reconstruction's silhouette are dropped")
     min_mask_fraction: float = described(0.002, "generated images whose mask covers a smaller fraction of the "
                                                 "image are dropped")
+    agreement_power: float = described(0.0, "generated images whose sRGB error against the preliminary "
+                                            "reconstruction's render exceeds the median error have their weight "
+                                            "multiplied by (median / error)^power (0: every image at alpha)")
     min_real_share: float = described(0.5, "the real images are repeated in the final reconstruction's training "
                                            "set until they make up at least this share of the images drawn "
                                            "(0: each image once, as the paper)")

@@ -11,7 +11,8 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
                 spread ones when capped), from the view's first light, geometry rendered from the preliminary
                 reconstruction;
 4. ``final``    the reconstruction on real images (photometric weight 1) and generated ones (weight
-                ``synthetic_weight``, geometric losses at full weight), with the multi-view losses;
+                ``synthetic_weight`` times each image's agreement factor with the preliminary reconstruction,
+                :mod:`~diamond_sss.pipeline.agreement`; geometric losses at full weight), with the multi-view losses;
 5. ``eval``     the test split (novel views under novel lights).
 
 Generated images whose mask is empty or far from the preliminary reconstruction's silhouette
@@ -38,6 +39,7 @@ from diamond_sss.data.regimes import RegimeSelection, farthest_point_order, sele
 from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, read_image_manifest
 from diamond_sss.evaluation.metrics import mask_iou
 from diamond_sss.evaluation.run import evaluate_run
+from diamond_sss.pipeline.agreement import agreement_factors, render_errors
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
 from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
 from diamond_sss.training.config import TrainConfig
@@ -45,6 +47,7 @@ from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.trainer import ImageSource
+from diamond_sss.utils.device import resolve_device
 from diamond_sss.utils.io import atomic_write_json, move_aside, sha256_file, sha256_json
 
 
@@ -218,6 +221,8 @@ def _checked_config(config: PipelineConfig | None) -> PipelineConfig:
         raise ValueError(f"--augment: unknown stage(s) {sorted(unknown)}; use none or a subset of {AUGMENTS}")
     if not 0.0 <= cfg.min_real_share < 1.0:
         raise ValueError(f"pipeline config 'min_real_share' must be in [0, 1), got {cfg.min_real_share}")
+    if not (math.isfinite(cfg.agreement_power) and cfg.agreement_power >= 0.0):
+        raise ValueError(f"pipeline config 'agreement_power' must be a finite number >= 0, got {cfg.agreement_power}")
     return cfg
 
 
@@ -386,16 +391,24 @@ def final_sources(ctx: PipelineContext, generated: list[GeneratedImage],
     ``<out>/synthetic`` and the real ones repeated for ``min_real_share``) and the counts it records."""
     num_real = len(ctx.selection.observations)
     copies = real_copies(num_real, len(generated), ctx.cfg.min_real_share)
-    extra = []
+    extra, factors = [], []
     if generated:
         write_capture(ctx.out / "synthetic", "train", ctx.real, generated)
-        downscale = ctx.train_cfg.runtime.downscale
+        synthetic = OLATDataset(ctx.out / "synthetic", "train", downscale=ctx.train_cfg.runtime.downscale)
+        prelim = load_scene(ctx.prelim_dir, resolve_device(ctx.train_cfg.runtime.device))[0]
+        errors = render_errors(prelim, ctx.real, generated)
+        factor_of = dict(zip(((item.view, item.light) for item in generated),
+                             agreement_factors(errors, ctx.cfg.agreement_power), strict=True))
+        factors = [factor_of[obs.view, obs.light] for obs in synthetic.observations]
         extra = [ImageSource(ctx.real.subset(ctx.selection.observations), 1.0)] * copies + [
-            ImageSource(OLATDataset(ctx.out / "synthetic", "train", downscale=downscale),
-                        ctx.train_cfg.losses.synthetic_weight)]
+            ImageSource(synthetic, ctx.train_cfg.losses.synthetic_weight, tuple(factors))]
     counts = {"real_images": num_real, "synthetic_images": len(generated), "dropped": dropped,
               "real_share": round(num_real / (num_real + len(generated)), 4),
               "real_draw_share": round((1 + copies) * num_real / ((1 + copies) * num_real + len(generated)), 4)}
+    if factors:
+        counts["agreement"] = {"mean_factor": round(sum(factors) / len(factors), 4),
+                               "min_factor": round(min(factors), 4),
+                               "down_weighted": sum(factor < 1.0 for factor in factors)}
     return extra, counts
 
 

@@ -75,6 +75,9 @@ class Gaussians:
     """Initialisation and size of the Gaussian set."""
 
     init: str = _key("auto", "initialisation: auto | ply (points3d.ply) | hull (visual hull) | random")
+    hull_masks: str = _key("all", "masks that carve the visual hull: all (every image source's views: with "
+                                  "generated images their views too, a tenth of those may put a voxel outside) | "
+                                  "real (the capture's views only)")
     count: int = _key(5_000, "initial number of Gaussians", "num_gaussians")
     max_count: int = _key(300_000, "cap on the number of Gaussians", "max_gaussians")
 
@@ -131,7 +134,8 @@ class Losses:
     lambda_subsurfacedness_smooth: float = _key(0.002, "weight of the subsurfaceness smoothness")
     lambda_sil: float = _key(0.5, "weight of the multi-view silhouette loss")
     lambda_depth: float = _key(0.3, "weight of the multi-view depth loss")
-    synthetic_weight: float = _key(0.5, "loss weight of diffusion-generated images")
+    synthetic_weight: float = _key(0.5, "photometric loss weight of diffusion-generated images, relative to a "
+                                         "real image's 1 (absolute, not normalised in the batch)")
 
 
 @dataclass

@@ -134,7 +134,7 @@ POSITIVE_KEYS = ("schedule.iterations", "schedule.batch_size", "gaussians.count"
                  "shading.sss_width", "runtime.checkpoint_every", "runtime.log_every", "densify.refine_every",
                  "raytrace.every", "multiview.target_downscale")
 
-CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"),
+CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"), "gaussians.hull_masks": ("real", "all"),
            "losses.photometric_space": ("linear", "srgb"), "multiview.target_mode": ("nearest-k", "random")}
 
 

@@ -13,6 +13,7 @@ for non-finite values, once every ``log_every`` steps and before every checkpoin
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -54,10 +55,25 @@ GAUSSIAN_LR_KEYS = {param.name: param.lr for param in GAUSSIAN_PARAMS if param.l
 
 @dataclass
 class ImageSource:
-    """A data set whose images train the scene with a photometric weight (1 real, alpha synthetic)."""
+    """A data set whose images train the scene with a photometric weight (1 real, alpha synthetic), times an
+    optional factor per image (``image_factors[i]`` for observation ``i``, e.g. a generated image's agreement)."""
 
     dataset: OLATDataset
     weight: float = 1.0
+    image_factors: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        factors = self.image_factors
+        if factors is not None and len(factors) != len(self.dataset):
+            raise ValueError(f"image_factors: {len(factors)} factors for the {len(self.dataset)} images of "
+                             f"{self.dataset.json_path}")
+        if not (math.isfinite(self.weight) and self.weight >= 0.0) or (
+                factors is not None and not all(math.isfinite(f) and f >= 0.0 for f in factors)):
+            raise ValueError(f"{self.dataset.json_path}: image weights must be finite and >= 0")
+
+    def weight_of(self, index: int) -> float:
+        """The photometric weight of observation ``index``."""
+        return self.weight * (1.0 if self.image_factors is None else self.image_factors[index])
 
 
 @dataclass
@@ -145,6 +161,10 @@ class Trainer:
         torch.manual_seed(cfg.schedule.seed)
         generator = torch.Generator().manual_seed(cfg.schedule.seed)
         views = sorted({obs.view for obs in self.lattice.observations})
+        w2c, K, tolerance = self.lattice.viewmats, self.lattice.intrinsics, 0
+        if cfg.gaussians.hull_masks == "all":
+            tolerance = (len(self.view_silhouettes) - len(views)) // 10
+            views, w2c, K = sorted(self.view_silhouettes), self.union.viewmats, self.union.Ks
         use_ply = cfg.gaussians.init in ("auto", "ply")
         use_hull = cfg.gaussians.init in ("auto", "hull")
         ply = self.lattice.root / "points3d.ply"
@@ -154,8 +174,9 @@ class Trainer:
             num_points=cfg.gaussians.count, bounds_center=self.bounds.center, bounds_radius=self.bounds.radius,
             points3d_path=ply if use_ply else None,
             masks=torch.stack([self.view_silhouettes[v].cpu() for v in views]) if use_hull else None,
-            w2c=self.lattice.viewmats[views] if use_hull else None,
-            K=self.lattice.intrinsics[views] if use_hull else None,
+            w2c=w2c[views] if use_hull else None,
+            K=K[views] if use_hull else None,
+            hull_tolerance_views=tolerance,
             generator=generator,
         )
         self.init_source = points.source
@@ -231,7 +252,7 @@ class Trainer:
             sample = source.dataset.load(obs_index)
             rgbs.append(sample.rgb)
             masks.append(sample.mask)
-            weights.append(source.weight)
+            weights.append(source.weight_of(obs_index))
             views.append(self.union.view_maps[source_index][sample.view])
             lights.append(self.union.light_maps[source_index][sample.light])
         rgb = torch.stack(rgbs).to(self.device)
