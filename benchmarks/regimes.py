@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import fields
 from pathlib import Path
 
 from diamond_sss.cli.synth_commands import synth
@@ -89,10 +90,10 @@ def variant_label(name: str) -> str:
 
 def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int,
                real_share: float = DEFAULT_SHARE, agreement_power: float = DEFAULT_POWER,
-               pipeline_set: dict[str, str] | None = None, tag: str = "") -> tuple[Path, dict]:
+               pipeline_set: dict[str, str] | None = None, tag: str = "", seed: int = 0) -> tuple[Path, dict]:
     """Train and evaluate one method in ``runs/<variant_name>``; returns its final run folder and test metrics
     (+ image counts). The pipeline methods reuse ``runs/sss3dgs`` as their preliminary reconstruction."""
-    overrides = short_schedule(iterations, dense=method == "dense")
+    overrides = {**short_schedule(iterations, dense=method == "dense"), "seed": seed}
     if method in ("sss3dgs", "+mv", "dense"):
         run = runs / method
         if not (run / "model.safetensors").is_file():  # a finished run is not resumed (that retrains its last part)
@@ -104,13 +105,18 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
         return run, {**metrics, "real_images": real, "synthetic_images": 0, "real_share": 1.0}
     prelim = runs / "sss3dgs"
     if not (prelim / "model.safetensors").is_file():
-        run_method("sss3dgs", data, runs, regime, iterations)
+        run_method("sss3dgs", data, runs, regime, iterations, seed=seed)
     augment = ("relight",) if method == "+relight" else ("nvs", "relight")
+    settings = pipeline_set or {}
+    pipeline_keys = {f.name: f.type for f in fields(PipelineConfig)}
     config = PipelineConfig(augment=augment, prelim_run=str(prelim), min_real_share=real_share,
-                            agreement_power=agreement_power)
+                            agreement_power=agreement_power,
+                            **{key: {"int": int, "float": float}.get(pipeline_keys[key], str)(value)
+                               for key, value in settings.items() if key in pipeline_keys})
     folder = runs / variant_name(method, real_share, agreement_power, tag)
-    metrics = run_pipeline(data, folder, regime=regime, preset="diamond",
-                           overrides={**overrides, **(pipeline_set or {})}, config=config, show_progress=False)
+    training = {key: value for key, value in settings.items() if key not in pipeline_keys}
+    metrics = run_pipeline(data, folder, regime=regime, preset="diamond", overrides={**overrides, **training},
+                           seed=seed, config=config, show_progress=False)
     return folder / "final", metrics
 
 
@@ -183,6 +189,8 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--no-dense", action="store_true", help="skip the dense reference")
     parser.add_argument("--iterations", type=int, default=1000)
+    parser.add_argument("--seed", type=int, default=0, help="the regime's draw of views and lights and the training "
+                                                            "seed (runs of a seed other than 0 go to <regime>_seed<N>)")
     parser.add_argument("--size", type=int, default=64)
     parser.add_argument("--spp", type=int, default=64)
     parser.add_argument("--real-shares", nargs="+", type=float, default=[DEFAULT_SHARE],
@@ -192,7 +200,8 @@ def main() -> None:
                         help="the pipeline rows' agreement_power values (a lever): generated images that disagree "
                              "with the preliminary reconstruction more than the median lose weight")
     parser.add_argument("--pipeline-set", nargs="+", default=[], metavar="KEY=VALUE",
-                        help="training settings of the pipeline rows' final reconstruction (needs --tag)")
+                        help="settings of the pipeline rows (needs --tag): PipelineConfig fields (e.g. "
+                             "nvs_views=0) or training keys of the final reconstruction (e.g. hull_masks=real)")
     parser.add_argument("--tag", default="", help="suffix of the pipeline rows' names with --pipeline-set")
     parser.add_argument("--note", default="", help="a line for the Markdown (machine, date)")
     parser.add_argument("--collect-only", action="store_true", help="report what the finished runs recorded (no training, no evaluation)")
@@ -212,7 +221,7 @@ def main() -> None:
         jobs += [] if args.no_dense else [("all", "dense", DEFAULT_SHARE, DEFAULT_POWER)]
         for regime, method, share, power in jobs:
             name = variant_name(method, share, power, args.tag)
-            runs = args.out / data.name / regime_slug(regime)
+            runs = args.out / data.name / (regime_slug(regime) + (f"_seed{args.seed}" if args.seed else ""))
             started = time.perf_counter()
             if args.collect_only:
                 if (found := recorded(runs / name)) is None:
@@ -220,7 +229,7 @@ def main() -> None:
                 final, metrics = found
             else:
                 final, metrics = run_method(method, data, runs, regime, args.iterations, share, power,
-                                            pipeline_set, args.tag)
+                                            pipeline_set, args.tag, args.seed)
             finals[data.name, regime, name] = final
             rows.append({"object": data.name, "regime": regime, "method": name,
                          "minutes": (time.perf_counter() - started) / 60,
