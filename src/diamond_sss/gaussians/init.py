@@ -225,13 +225,11 @@ def initial_points(
     w2c: Tensor | None = None,
     K: Tensor | None = None,
     hull_resolution: int = 64,
-    hull_tolerance_views: int = 0,
     generator: torch.Generator | None = None,
 ) -> InitialPoints:
     """The initial cloud: ``points3d_path`` if it exists, else the visual hull of ``masks`` (seen by
-    ``w2c``, ``K``; ``hull_tolerance_views`` of them may put a voxel in the background), else ``num_points``
-    random points in the bounding sphere. Each fallback is logged as a warning with its reason. ``num_points``
-    does not apply to a ``points3d.ply``."""
+    ``w2c``, ``K``), else ``num_points`` random points in the bounding sphere. Each fallback is logged
+    as a warning with its reason. ``num_points`` does not apply to a ``points3d.ply``."""
     if points3d_path is not None and Path(points3d_path).is_file():
         points, colors, normals = load_points3d_ply(points3d_path)
         return InitialPoints(points, colors, normals, "points3d")
@@ -245,7 +243,6 @@ def initial_points(
                 bounds_radius,
                 resolution=hull_resolution,
                 num_points=num_points,
-                mask_tolerance_views=hull_tolerance_views,
                 generator=generator,
             )
             return InitialPoints(points, None, None, "visual_hull")

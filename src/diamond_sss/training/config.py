@@ -75,9 +75,8 @@ class Gaussians:
     """Initialisation and size of the Gaussian set."""
 
     init: str = _key("auto", "initialisation: auto | ply (points3d.ply) | hull (visual hull) | random")
-    hull_masks: str = _key("all", "masks that carve the visual hull: all (every image source's views: with "
-                                  "generated images their views too, a tenth of those may put a voxel outside) | "
-                                  "real (the capture's views only)")
+    hull_masks: str = _key("all", "masks that carve the visual hull: all (every image source's views, the "
+                                  "generated images' too) | real (the capture's views only)")
     count: int = _key(5_000, "initial number of Gaussians", "num_gaussians")
     max_count: int = _key(300_000, "cap on the number of Gaussians", "max_gaussians")
 

@@ -161,9 +161,8 @@ class Trainer:
         torch.manual_seed(cfg.schedule.seed)
         generator = torch.Generator().manual_seed(cfg.schedule.seed)
         views = sorted({obs.view for obs in self.lattice.observations})
-        w2c, K, tolerance = self.lattice.viewmats, self.lattice.intrinsics, 0
+        w2c, K = self.lattice.viewmats, self.lattice.intrinsics
         if cfg.gaussians.hull_masks == "all":
-            tolerance = (len(self.view_silhouettes) - len(views)) // 10
             views, w2c, K = sorted(self.view_silhouettes), self.union.viewmats, self.union.Ks
         use_ply = cfg.gaussians.init in ("auto", "ply")
         use_hull = cfg.gaussians.init in ("auto", "hull")
@@ -176,7 +175,6 @@ class Trainer:
             masks=torch.stack([self.view_silhouettes[v].cpu() for v in views]) if use_hull else None,
             w2c=w2c[views] if use_hull else None,
             K=K[views] if use_hull else None,
-            hull_tolerance_views=tolerance,
             generator=generator,
         )
         self.init_source = points.source
