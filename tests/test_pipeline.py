@@ -154,7 +154,7 @@ def test_prelim_reuses_a_finished_reconstruction(setup, tmp_path):
     assert manifest["stages"]["prelim"]["reused"] == str(base)
     assert not (tmp_path / "run" / "prelim").exists()
     assert result["real_images"] == 2 and result["synthetic_images"] == 2 and result["real_share"] == 0.5
-    assert result["real_draw_share"] == 0.5
+    assert result["real_draw_share"] == 0.5 and "agreement" not in result  # power 0: no render, every image at alpha
     shared = run_pipeline(data, tmp_path / "shared", regime="views=2,lights=1", overrides=TRAIN,
                           config=replace(cfg, min_real_share=0.7), show_progress=False)
     assert shared["real_share"] == 0.5 and shared["real_draw_share"] == 0.75  # the real images drawn 3x as often

@@ -395,13 +395,14 @@ def final_sources(ctx: PipelineContext, generated: list[GeneratedImage],
     if generated:
         write_capture(ctx.out / "synthetic", "train", ctx.real, generated)
         synthetic = OLATDataset(ctx.out / "synthetic", "train", downscale=ctx.train_cfg.runtime.downscale)
-        prelim = load_scene(ctx.prelim_dir, resolve_device(ctx.train_cfg.runtime.device))[0]
-        errors = render_errors(prelim, ctx.real, generated)
-        factor_of = dict(zip(((item.view, item.light) for item in generated),
-                             agreement_factors(errors, ctx.cfg.agreement_power), strict=True))
-        factors = [factor_of[obs.view, obs.light] for obs in synthetic.observations]
+        if ctx.cfg.agreement_power > 0.0:
+            prelim = load_scene(ctx.prelim_dir, resolve_device(ctx.train_cfg.runtime.device))[0]
+            errors = render_errors(prelim, ctx.real, generated)
+            factor_of = dict(zip(((item.view, item.light) for item in generated),
+                                 agreement_factors(errors, ctx.cfg.agreement_power), strict=True))
+            factors = [factor_of[obs.view, obs.light] for obs in synthetic.observations]
         extra = [ImageSource(ctx.real.subset(ctx.selection.observations), 1.0)] * copies + [
-            ImageSource(synthetic, ctx.train_cfg.losses.synthetic_weight, tuple(factors))]
+            ImageSource(synthetic, ctx.train_cfg.losses.synthetic_weight, tuple(factors) if factors else None)]
     counts = {"real_images": num_real, "synthetic_images": len(generated), "dropped": dropped,
               "real_share": round(num_real / (num_real + len(generated)), 4),
               "real_draw_share": round((1 + copies) * num_real / ((1 + copies) * num_real + len(generated)), 4)}
