@@ -94,6 +94,8 @@ def test_render_errors_against_the_preliminary_reconstruction(setup, tmp_path):
     with pytest.raises(ValueError, match="generated image is 8x8"):
         small = write_png(tmp_path / "small.png", to_srgb8(radiance[:8, :8], alpha[:8, :8]))
         render_errors(scene, real, [GeneratedImage(3, 2, small)])
+    with pytest.raises(ValueError, match="same.png: view 99 / light 2 outside the lattice's 6 views x 3 lights"):
+        render_errors(scene, real, [GeneratedImage(99, 2, same)])
 
 
 def test_image_source_weights_per_image(setup):

@@ -38,6 +38,9 @@ def render_errors(scene: RelightableScene, lattice: OLATDataset, items: list[Gen
     """``e_i`` of each generated image against ``scene`` rendered at its view and light of ``lattice``."""
     errors, device = [], scene.gaussians.means.device
     for item in items:
+        if not (0 <= item.view < len(lattice.cameras) and 0 <= item.light < len(lattice.lights)):
+            raise ValueError(f"{item.image}: view {item.view} / light {item.light} outside the lattice's "
+                             f"{len(lattice.cameras)} views x {len(lattice.lights)} lights")
         rgb, mask = load_rgba(item.image, item.mask)
         camera, light = lattice.cameras[item.view], lattice.lights[item.light]
         if (rgb.shape[1], rgb.shape[0]) != (camera.width, camera.height):

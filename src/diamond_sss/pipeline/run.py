@@ -11,8 +11,9 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
                 spread ones when capped), from the view's first light, geometry rendered from the preliminary
                 reconstruction;
 4. ``final``    the reconstruction on real images (photometric weight 1) and generated ones (weight
-                ``synthetic_weight`` times each image's agreement factor with the preliminary reconstruction,
-                :mod:`~diamond_sss.pipeline.agreement`; geometric losses at full weight), with the multi-view losses;
+                ``synthetic_weight``, times each image's agreement factor with the preliminary reconstruction
+                when ``agreement_power`` > 0, :mod:`~diamond_sss.pipeline.agreement`; geometric losses at full
+                weight; the initial hull carved with the generated views' masks too), with the multi-view losses;
 5. ``eval``     the test split (novel views under novel lights).
 
 Generated images whose mask is empty or far from the preliminary reconstruction's silhouette
