@@ -5,7 +5,8 @@ the dense reference (`dense`: the `diamond` preset on every image). Rows per obj
 `sss3dgs` (real images only); `+mv` (the `diamond` preset: + multi-view losses); `+relight` (+ relighting
 diffusion); `full` (+ novel-view diffusion: the full pipeline), plus the mean over objects. The pipeline rows
 reuse the `sss3dgs` run as their preliminary reconstruction and run once per --real-shares value (the pipeline's
-`min_real_share`; rows and folders of a value other than the default 0.5 are named e.g. `full_share0`) and per
+`min_real_share`; rows and folders of a value other than the default `auto`, n / (n + 9) for n real images, are
+named e.g. `full_share0`) and per
 --agreement-powers value (the pipeline's `agreement_power`; other than the default 0: e.g. `full_agree1`). Every
 method trains for the same steps.
 Objects: data folders or `shape:material` pairs never used for fine-tuning the diffusion models (those are
@@ -27,6 +28,7 @@ import json
 import time
 from dataclasses import fields
 from pathlib import Path
+from typing import Any
 
 from diamond_sss.cli.synth_commands import synth
 from diamond_sss.data.dataset import OLATDataset
@@ -67,13 +69,27 @@ def resolve_object(spec: str, size: int, spp: int) -> Path:
     return folder
 
 
-def variant_name(method: str, real_share: float = DEFAULT_SHARE, agreement_power: float = DEFAULT_POWER,
+def share_value(text: str) -> float | None:
+    """A --real-shares value: ``auto`` (the pipeline's default, ``None``) or a number."""
+    return None if text == "auto" else float(text)
+
+
+def pipeline_setting(annotation: str, text: str) -> Any:
+    """A --pipeline-set value as the :class:`PipelineConfig` field of type ``annotation`` (e.g. ``int | None``)
+    takes it: ``None`` for an optional field, else the field's scalar type."""
+    scalar = annotation.removesuffix(" | None")
+    if text == "None" and scalar != annotation:
+        return None
+    return {"int": int, "float": float}.get(scalar, str)(text)
+
+
+def variant_name(method: str, real_share: float | None = DEFAULT_SHARE, agreement_power: float = DEFAULT_POWER,
                  tag: str = "") -> str:
     """``full`` at the pipeline's default real share and agreement power, ``full_share0`` at share 0,
     ``full_agree1`` at power 1, ``full_<tag>`` with --pipeline-set, and so on; other methods as they are."""
     if method in ("sss3dgs", "+mv", "dense"):
         return method
-    share = "" if real_share == DEFAULT_SHARE else f"_share{round(100 * real_share)}"
+    share = "" if real_share is None else f"_share{round(100 * real_share)}"
     power = "" if agreement_power == DEFAULT_POWER else f"_agree{agreement_power:g}"
     return f"{method}{share}{power}{f'_{tag}' if tag else ''}"
 
@@ -89,7 +105,7 @@ def variant_label(name: str) -> str:
 
 
 def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int,
-               real_share: float = DEFAULT_SHARE, agreement_power: float = DEFAULT_POWER,
+               real_share: float | None = DEFAULT_SHARE, agreement_power: float = DEFAULT_POWER,
                pipeline_set: dict[str, str] | None = None, tag: str = "", seed: int = 0) -> tuple[Path, dict]:
     """Train and evaluate one method in ``runs/<variant_name>``; returns its final run folder and test metrics
     (+ image counts). The pipeline methods reuse ``runs/sss3dgs`` as their preliminary reconstruction."""
@@ -111,7 +127,7 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     pipeline_keys = {f.name: f.type for f in fields(PipelineConfig)}
     config = PipelineConfig(augment=augment, prelim_run=str(prelim), min_real_share=real_share,
                             agreement_power=agreement_power,
-                            **{key: {"int": int, "float": float}.get(pipeline_keys[key], str)(value)
+                            **{key: pipeline_setting(pipeline_keys[key], value)
                                for key, value in settings.items() if key in pipeline_keys})
     folder = runs / variant_name(method, real_share, agreement_power, tag)
     training = {key: value for key, value in settings.items() if key not in pipeline_keys}
@@ -169,8 +185,9 @@ def target_lines(rows: list[dict]) -> list[str]:
 
 def markdown(rows: list[dict], iterations: int, note: str) -> str:
     lines = [f"{iterations} steps per reconstruction (`short_schedule`), test split (novel views under novel lights). "
-             f"Pipeline rows: real images at least {DEFAULT_SHARE:.0%} of the images drawn unless named `_shareN` "
-             f"(N%). {note}".strip(), "",
+             "Pipeline rows: real images at least n / (n + "
+             f"{PipelineConfig().generated_as_real:g}) of the images drawn for n real images unless named "
+             f"`_shareN` (N%). {note}".strip(), "",
              "| object | regime | stage | PSNR | SSIM | mask IoU | real / synthetic images |",
              "|---|---|---|---|---|---|---|"]
     for r in [*rows, *mean_rows(rows)]:
@@ -193,9 +210,9 @@ def main() -> None:
                                                             "seed (runs of a seed other than 0 go to <regime>_seed<N>)")
     parser.add_argument("--size", type=int, default=64)
     parser.add_argument("--spp", type=int, default=64)
-    parser.add_argument("--real-shares", nargs="+", type=float, default=[DEFAULT_SHARE],
+    parser.add_argument("--real-shares", nargs="+", type=share_value, default=[DEFAULT_SHARE],
                         help="the pipeline rows' min_real_share values (a lever): real images at least this share "
-                             "of the images drawn")
+                             "of the images drawn; auto (default): n / (n + generated_as_real) for n real images")
     parser.add_argument("--agreement-powers", nargs="+", type=float, default=[DEFAULT_POWER],
                         help="the pipeline rows' agreement_power values (a lever): generated images that disagree "
                              "with the preliminary reconstruction more than the median lose weight")

@@ -24,6 +24,7 @@ from diamond_sss.pipeline.run import (
     real_copies,
     run_pipeline,
     spread_subset,
+    target_real_share,
 )
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
@@ -57,6 +58,13 @@ def test_write_capture_keeps_the_lattice(setup, tmp_path):
     assert torch.allclose(generated.viewmats, real.viewmats, atol=1e-5)
     assert torch.allclose(generated.intrinsics, real.intrinsics, atol=1e-4)
     assert torch.equal(generated.load(0).rgb, real.load(4).rgb)
+
+
+def test_target_real_share_grows_with_the_real_images():
+    cfg = PipelineConfig()
+    assert target_real_share(9, cfg) == 0.5 and target_real_share(30, cfg) == pytest.approx(30 / 39)
+    assert target_real_share(30, replace(cfg, generated_as_real=30.0)) == 0.5
+    assert target_real_share(30, replace(cfg, min_real_share=0.0)) == 0.0  # given: as it is
 
 
 def test_real_copies():
@@ -162,6 +170,8 @@ def test_prelim_reuses_a_finished_reconstruction(setup, tmp_path):
     assert shared["real_share"] == 0.5 and shared["real_draw_share"] == 0.75  # the real images drawn 3x as often
     with pytest.raises(ValueError, match="'min_real_share' must be in"):
         run_pipeline(data, tmp_path / "bad", config=replace(cfg, min_real_share=1.0))
+    with pytest.raises(ValueError, match="'generated_as_real' must be a finite number > 0, got 0"):
+        run_pipeline(data, tmp_path / "bad", config=replace(cfg, generated_as_real=0.0))
     with pytest.raises(ValueError, match="'agreement_power' must be a finite number >= 0"):
         run_pipeline(data, tmp_path / "bad", config=replace(cfg, agreement_power=float("nan")))
     with pytest.raises(ValueError, match=r"base/regime.json lists other images"):

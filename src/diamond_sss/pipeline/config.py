@@ -34,9 +34,13 @@ class PipelineConfig:
     agreement_power: float = described(0.0, "generated images whose sRGB error against the preliminary "
                                             "reconstruction's render exceeds the median error have their weight "
                                             "multiplied by (median / error)^power (0: every image at alpha)")
-    min_real_share: float = described(0.5, "the real images are repeated in the final reconstruction's training "
-                                           "set until they make up at least this share of the images drawn "
-                                           "(0: each image once, as the paper)")
+    min_real_share: float | None = described(None, "the real images are repeated in the final reconstruction's "
+                                                   "training set until they make up at least this share of the "
+                                                   "images drawn (0: each image once, as the paper; default: "
+                                                   "n / (n + generated_as_real) for n real images)")
+    generated_as_real: float = described(9.0, "without min_real_share, the generated images together are drawn "
+                                              "about as often as this many real images: a real share of 0.5 at 9 "
+                                              "real images, 0.77 at 30")
     cache_dir: str | None = described(None, "cache of generated images (default: ~/.cache/diamond_sss or "
                                             "$DIAMOND_SSS_CACHE)")
     device: str = described("cpu", "cpu | cuda for the diffusion models (reconstructions use --set device=...)")

@@ -18,8 +18,9 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
 
 Generated images whose mask is empty or far from the preliminary reconstruction's silhouette
 (IoU < ``min_silhouette_iou``) are dropped and counted. The result reports ``real_share``, the share of real
-images among the final reconstruction's training images; with ``min_real_share`` the real images are repeated in
-the training index until they make up at least that share of the images drawn (``real_draw_share``).
+images among the final reconstruction's training images; the real images are repeated in the training index until
+they make up at least ``min_real_share`` of the images drawn (``real_draw_share``), by default a share that grows with
+the regime: n / (n + ``generated_as_real``) for n real images.
 """
 
 from __future__ import annotations
@@ -166,6 +167,14 @@ def check_prelim_run(run: Path, data: Path, split: str, observations: list[int])
     return run
 
 
+def target_real_share(real: int, cfg: PipelineConfig) -> float:
+    """The least share of real images among the images drawn: ``min_real_share`` when given, else
+    ``real / (real + generated_as_real)`` (the generated images together drawn as often as that many real ones)."""
+    if cfg.min_real_share is not None:
+        return cfg.min_real_share
+    return real / (real + cfg.generated_as_real)
+
+
 def real_copies(real: int, synthetic: int, share: float) -> int:
     """Extra copies of ``real`` images, next to ``synthetic`` ones, for the real ones to make up >= ``share``
     (in [0, 1)) of the training index: the least k >= 0 with ``(1 + k) real / ((1 + k) real + synthetic) >= share``."""
@@ -220,8 +229,10 @@ def _checked_config(config: PipelineConfig | None) -> PipelineConfig:
     unknown = set(cfg.augment) - set(AUGMENTS)
     if unknown:
         raise ValueError(f"--augment: unknown stage(s) {sorted(unknown)}; use none or a subset of {AUGMENTS}")
-    if not 0.0 <= cfg.min_real_share < 1.0:
+    if cfg.min_real_share is not None and not 0.0 <= cfg.min_real_share < 1.0:
         raise ValueError(f"pipeline config 'min_real_share' must be in [0, 1), got {cfg.min_real_share}")
+    if not (math.isfinite(cfg.generated_as_real) and cfg.generated_as_real > 0.0):
+        raise ValueError(f"pipeline config 'generated_as_real' must be a finite number > 0, got {cfg.generated_as_real}")
     if not (math.isfinite(cfg.agreement_power) and cfg.agreement_power >= 0.0):
         raise ValueError(f"pipeline config 'agreement_power' must be a finite number >= 0, got {cfg.agreement_power}")
     return cfg
@@ -391,7 +402,7 @@ def final_sources(ctx: PipelineContext, generated: list[GeneratedImage],
     """The final reconstruction's image sources besides the regime's real images (the ``generated`` ones written to
     ``<out>/synthetic`` and the real ones repeated for ``min_real_share``) and the counts it records."""
     num_real = len(ctx.selection.observations)
-    copies = real_copies(num_real, len(generated), ctx.cfg.min_real_share)
+    copies = real_copies(num_real, len(generated), target_real_share(num_real, ctx.cfg))
     extra, factors = [], []
     if generated:
         write_capture(ctx.out / "synthetic", "train", ctx.real, generated)

@@ -1,0 +1,73 @@
+"""The sparse-regime benchmark's bookkeeping (benchmarks/regimes.py): names, labels, targets, collected runs."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+spec = importlib.util.spec_from_file_location("regimes_benchmark", ROOT / "benchmarks" / "regimes.py")
+regimes = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(regimes)
+
+
+def test_variant_names_and_labels():
+    assert regimes.share_value("auto") is None and regimes.share_value("0.7") == 0.7
+    assert regimes.variant_name("full") == "full" and regimes.variant_name("sss3dgs", 0.3) == "sss3dgs"
+    name = regimes.variant_name("full", 0.3, 1.0, "batch2")
+    assert name == "full_share30_agree1_batch2"
+    assert regimes.variant_label(name) == ("+ novel views (full pipeline) "
+                                           "[min_real_share 0.3, agreement_power 1, batch2]")
+    assert regimes.variant_label(regimes.variant_name("+relight", None, 0.0)) == "+ relighting"
+
+
+def test_pipeline_settings_take_the_fields_types():
+    assert regimes.pipeline_setting("int", "0") == 0 and regimes.pipeline_setting("float | None", "0.7") == 0.7
+    assert regimes.pipeline_setting("float | None", "None") is None
+    assert regimes.pipeline_setting("str | None", "models/nvs") == "models/nvs"
+    with pytest.raises(ValueError):
+        regimes.pipeline_setting("int", "many")
+
+
+def _row(name: str, regime: str, method: str, psnr: float, iou: float) -> dict:
+    return {"object": name, "regime": regime, "method": method, "psnr": psnr, "ssim": 0.5, "mask_iou": iou,
+            "real_images": 9, "synthetic_images": 0}
+
+
+def test_targets_are_judged_per_object_and_for_the_mean():
+    rows = [_row("a", regimes.NINE, "sss3dgs", 15.0, 0.80), _row("a", regimes.NINE, "full", 17.5, 0.85),
+            _row("b", regimes.NINE, "sss3dgs", 15.0, 0.80), _row("b", regimes.NINE, "full", 16.5, 0.90),
+            _row("a", regimes.THIRTY, "full", 24.0, 0.9), _row("a", "all", "dense", 25.5, 0.95)]
+    lines = regimes.target_lines([*rows, *regimes.mean_rows(rows)])
+    assert "- a, 9 images: full - sss3dgs = +2.50 dB, mask IoU +0.050 (target >= +2 dB and > 0: met)" in lines
+    assert "- b, 9 images: full - sss3dgs = +1.50 dB, mask IoU +0.100 (target >= +2 dB and > 0: not met)" in lines
+    assert "- mean (2), 9 images: full - sss3dgs = +2.00 dB, mask IoU +0.075 (target >= +2 dB and > 0: met)" in lines
+    assert "- a, 30 images: full - dense = -1.50 dB (target >= -2 dB: met)" in lines
+    table = regimes.markdown(rows, 1000, "test machine")
+    assert "| a | `views=3,lights=3` | + novel views (full pipeline) | 17.50 | 0.5000 | 0.850 | 9 / 0 |" in table
+    assert "n / (n + 9) of the images drawn" in table and table.splitlines()[0].endswith("test machine")
+
+
+def test_recorded_reads_a_finished_pipeline_and_skips_an_unfinished_one(tmp_path):
+    run = tmp_path / "full"
+    run.mkdir()
+    assert regimes.recorded(run) is None
+    stages = {"final": {"real_images": 30, "synthetic_images": 208, "real_share": 0.1261, "seconds": 1.0}}
+    (run / "pipeline.json").write_text(json.dumps({"stages": stages}))
+    assert regimes.recorded(run) is None  # not evaluated yet
+    stages["eval"] = {"psnr": 20.5, "ssim": 0.7, "mask_iou": 0.93}
+    (run / "pipeline.json").write_text(json.dumps({"stages": stages}))
+    final, metrics = regimes.recorded(run)
+    assert final == run / "final" and metrics == {"psnr": 20.5, "ssim": 0.7, "mask_iou": 0.93, "real_images": 30,
+                                                  "synthetic_images": 208, "real_share": 0.1261}
+
+
+def test_pipeline_settings_need_a_tag(monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["regimes.py", "--pipeline-set", "nvs_views=0"])
+    with pytest.raises(SystemExit):
+        regimes.main()
+    assert "--pipeline-set and --tag go together" in capsys.readouterr().err
