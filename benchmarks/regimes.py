@@ -80,10 +80,6 @@ def pipeline_setting(annotation: str, text: str) -> Any:
     scalar = annotation.removesuffix(" | None")
     if text == "None" and scalar != annotation:
         return None
-    if scalar == "bool":
-        if text not in ("true", "false"):
-            raise ValueError(f"a yes/no setting takes true or false, got {text!r}")
-        return text == "true"
     return {"int": int, "float": float}.get(scalar, str)(text)
 
 

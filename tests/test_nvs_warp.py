@@ -9,7 +9,7 @@ import torch
 from tiny_models import TINY_NVS
 
 from diamond_sss.data import OLATDataset
-from diamond_sss.data.conventions import intrinsics_matrix, scale_intrinsics
+from diamond_sss.data.conventions import intrinsics_matrix
 from diamond_sss.data.embedded import embedded_dataset
 from diamond_sss.diffusion.common.schedulers import make_ddim_scheduler
 from diamond_sss.diffusion.geometry import GeometryMaps, GeometrySource, StoredMapsGeometry
@@ -17,7 +17,7 @@ from diamond_sss.diffusion.geometry.base import GeometryError
 from diamond_sss.diffusion.nvs import pipeline
 from diamond_sss.diffusion.nvs.convert import free3d_config
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, load_rgba_views, sample_batch
-from diamond_sss.diffusion.nvs.model import NVSBatch, NVSConfig, NVSModel, SupportViews
+from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.diffusion.nvs.pipeline import NovelViewPipeline
 from diamond_sss.diffusion.nvs.warp import forward_warp, resize_depth
 
@@ -76,28 +76,6 @@ def test_the_nearer_of_two_points_on_one_target_ray_wins(footprint):
     depth[0, 2, 3] = 0.0  # without the near point the far one shows
     warped, _ = forward_warp(image, depth, torch.eye(4), K, target[None], K[None], 5, footprint=footprint)
     torch.testing.assert_close(warped[0, :, 2, 2], torch.tensor([0.0, 1.0, 0.0]), atol=1e-6, rtol=0)
-
-
-@pytest.mark.parametrize("footprint", ["nearest", "bilinear"])
-def test_several_references_splat_into_one_z_buffer(footprint):
-    # reference 0 sees the left half of a plane at z = 2 (red), reference 1, the same camera, the right half
-    # (green) and a nearer patch (blue, z = 1) over two of reference 0's pixels: the union, nearest surface first
-    K = intrinsics_matrix(5.0, 5.0, 3.0, 3.0)
-    images, depths = torch.zeros(2, 3, 6, 6), torch.zeros(2, 1, 6, 6)
-    images[0, 0, :, :3], depths[0, 0, :, :3] = 1.0, 2.0
-    images[1, 1, :, 3:], depths[1, 0, :, 3:] = 1.0, 2.0
-    images[1, 2, 0, :2], depths[1, 0, 0, :2] = 1.0, 1.0
-    eye = torch.eye(4).expand(2, 4, 4)
-    warped, valid = forward_warp(images, depths, eye, K.expand(2, 3, 3), eye[:1], K[None], 6, footprint=footprint)
-    assert bool(valid.all())
-    expected = torch.zeros(3, 6, 6)
-    expected[0, :, :3], expected[1, :, 3:] = 1.0, 1.0
-    expected[:, 0, :2] = torch.tensor([0.0, 0.0, 1.0])[:, None]
-    torch.testing.assert_close(warped[0], expected, atol=1e-6, rtol=0)
-    alone, alone_valid = forward_warp(images[0], depths[0], eye[0], K, eye[:1], K[None], 6, footprint=footprint)
-    assert int(alone_valid.sum()) == 18 and float(alone[0, 0, :, :3].min()) == 1.0  # one reference: its half
-    with pytest.raises(ValueError, match=r"depth must have shape \[2,1,6,6\]"):
-        forward_warp(images, depths[:1], eye, K.expand(2, 3, 3), eye[:1], K[None], 6)
 
 
 def test_points_behind_the_target_camera_or_outside_it_are_dropped():
@@ -260,45 +238,3 @@ def test_generation_with_the_warp_hint_needs_metric_depth_and_keys_the_cache_by_
     truth = load_rgba_views(dataset, [1, 3], 0, dataset.width)[0][:, 3]
     overlap = ((hint[:, 3] > 0.5) & (truth > 0.5)).sum() / ((hint[:, 3] > 0.5) | (truth > 0.5)).sum()
     assert hint.shape == (2, 4, 64, 64) and float(overlap) > 0.5
-
-
-def test_support_views_widen_the_warp_hint_and_key_the_cache(tmp_path):
-    torch.manual_seed(0)
-    config = NVSConfig(**TINY_NVS)
-    model_dir = NVSModel(config).save(tmp_path / "model")
-    data = embedded_dataset(OBJECT)
-    dataset = OLATDataset(data)
-    views = [0, 3]
-    images, K = load_rgba_views(dataset, views, 0, config.warp_source_size)
-    depth = torch.cat([pipeline.reference_depth(dataset, v, 0, StoredMapsGeometry(), config.warp_source_size)
-                       for v in views])
-    cameras = pipeline.parse_targets("1", dataset)
-    target_K = scale_intrinsics(cameras.K, config.warp_source_size / cameras.size)
-    batch = NVSBatch(reference=images[:1], reference_w2c=dataset.viewmats[:1].float(),
-                     target_w2c=cameras.w2c[None].float(), target_K=target_K[None].float(), reference_K=K[:1].float(),
-                     reference_depth=depth[:1])
-    model = NVSModel.load(model_dir)
-    alone = model.warp_hint(batch)
-    batch.support = SupportViews(images[1:][None], dataset.viewmats[3:4][None].float(), K[1:][None].float(),
-                                 depth[1:][None])
-    both = model.warp_hint(batch)
-    assert int(both[:, 4].sum()) > int(alone[:, 4].sum())  # the second view covers more of the target
-    assert bool((both[:, 4] >= alone[:, 4]).all())
-    batch.support = SupportViews(images[1:], dataset.viewmats[3:4].float(), K[1:].float(), depth[1:])
-    with pytest.raises(ValueError, match="support images must be"):
-        batch.validate()
-
-    def run(out, support):
-        return pipeline.generate_novel_views(data, tmp_path / out, 0, 0, [1], model_dir=model_dir, steps=1,
-                                             cache_dir=tmp_path / "cache", geometry=StoredMapsGeometry(),
-                                             support_views=support)
-
-    run("alone", ())
-    run("support", [3])
-    assert len(list((tmp_path / "cache").glob("*/*"))) == 2  # the support views are part of the key
-    with pytest.raises(ValueError, match="view 2 was not captured under light 0"):
-        run("bad", [2])
-    with pytest.raises(ValueError, match="repeat the reference view 0"):
-        run("bad", [0])
-    with pytest.raises(ValueError, match=r"unknown support view index \[99\]"):
-        run("bad", [99])

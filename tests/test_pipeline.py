@@ -229,30 +229,6 @@ def test_sanity_checks_drop_bad_generations(setup, tmp_path):
         run_pipeline(data, tmp_path / "x", config=PipelineConfig(augment=("nvs", "super-resolution")))
 
 
-def test_nvs_support_hands_every_other_real_view_under_the_light_to_the_warp_hint(setup, tmp_path, monkeypatch):
-    from diamond_sss.diffusion.nvs import pipeline as nvs_pipeline
-
-    data, nvs, _, cache = setup
-    calls = []
-    generate = nvs_pipeline.generate_novel_views
-
-    def spy(*args, **kwargs):
-        calls.append((args[2], args[3], list(kwargs["support_views"])))
-        return generate(*args, **kwargs)
-
-    monkeypatch.setattr(nvs_pipeline, "generate_novel_views", spy)
-    cfg = PipelineConfig(augment=("nvs",), nvs_views=4, nvs_model=str(nvs), min_silhouette_iou=0.0,
-                         min_mask_fraction=0.0, cache_dir=str(cache))
-    run_pipeline(data, tmp_path / "alone", regime="views=2,lights=1", overrides=TRAIN, config=cfg,
-                 show_progress=False)
-    assert calls and all(support == [] for _, _, support in calls)
-    real_views = json.loads((tmp_path / "alone" / "prelim" / "regime.json").read_text())["views"]
-    calls.clear()
-    run_pipeline(data, tmp_path / "support", regime="views=2,lights=1", overrides=TRAIN,
-                 config=replace(cfg, nvs_support=True), show_progress=False)
-    assert calls and all(support == [v for v in real_views if v != reference] for reference, _, support in calls)
-
-
 def test_parse_augment_and_missing_models(setup, tmp_path):
     from diamond_sss.pipeline.run import parse_augment
 

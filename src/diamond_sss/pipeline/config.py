@@ -20,8 +20,6 @@ class PipelineConfig:
     prelim_run: str | None = described(None, "a finished reconstruction of the same real images (a `train` run "
                                              "folder with this regime and seed) reused as the preliminary one")
     nvs_views: int = described(12, "at most this many missing views generated per real light (0: all)")
-    nvs_support: bool = described(False, "the novel-view model's warp hint also splats the other real views "
-                                         "under the light (the union of what they see), not the reference alone")
     relight_lights: int = described(8, "at most this many missing lights generated per view (0: all)")
     nvs_model: str | None = described(None, "folder of a novel-view model (default: the shipped one)")
     relight_model: str | None = described(None, "folder of a relighting model (default: the shipped one)")

@@ -6,8 +6,7 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
                 ``prelim_iterations`` steps (default: the final reconstruction's), or ``prelim_run``, a finished
                 reconstruction of the same real images, reused without retraining;
 2. ``nvs``      novel views: for each real light, the lattice views the regime left out (the ``nvs_views``
-                farthest-point-spread ones when capped) generated from the nearest real view under that light
-                (with ``nvs_support``, the warp hint splats every real view under that light);
+                farthest-point-spread ones when capped) generated from the nearest real view under that light;
 3. ``relight``  every real and generated view relit to the lattice lights it lacks (the ``relight_lights``
                 spread ones when capped), from the view's first light, geometry rendered from the preliminary
                 reconstruction;
@@ -345,8 +344,7 @@ def nvs_stage(ctx: PipelineContext) -> dict:
                                  group, split=ctx.split, model_dir=cfg.nvs_model,
                                  steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=ctx.seed,
                                  cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
-                                 device=cfg.device, geometry=geometry,
-                                 support_views=[v for v in sources if v != reference] if cfg.nvs_support else ())
+                                 device=cfg.device, geometry=geometry)
             calls += 1
     return {"targets": len(targets), "calls": calls}
 

@@ -51,35 +51,12 @@ class ReferenceEncoder(nn.Module):
 
 
 @dataclass
-class SupportViews:
-    """Further views of each object under the reference's light, which the warp hint splats together with the
-    reference (they widen what the hint covers; the model's other conditioning is the reference's alone):
-    ``images [B,S,4,H,W]`` like the reference, ``w2c [B,S,4,4]``, ``K [B,S,3,3]``, ``depth [B,S,1,H,W]``."""
-
-    images: Tensor
-    w2c: Tensor
-    K: Tensor
-    depth: Tensor
-
-    def validate(self, reference: Tensor) -> None:
-        b, _, h, w = reference.shape
-        s = self.images.shape[1] if self.images.ndim == 5 else -1
-        expected = {"images": (b, s, reference.shape[1], h, w), "w2c": (b, s, 4, 4), "K": (b, s, 3, 3),
-                    "depth": (b, s, 1, h, w)}
-        for name, shape in expected.items():
-            if getattr(self, name).shape != shape:
-                raise ValueError(f"support {name} must be {list(shape)} (B, S support views, like the reference), "
-                                 f"got {tuple(getattr(self, name).shape)}")
-
-
-@dataclass
 class NVSBatch:
     """One batch of objects. Images are RGBA, linear premultiplied colour and alpha in ``[0, 1]``.
 
     ``reference [B,4,H,W]``, ``targets [B,V,4,H,W]`` (None at sampling), ``reference_w2c [B,4,4]``,
     ``target_w2c [B,V,4,4]``, ``target_K [B,V,3,3]`` pixel intrinsics of the ``H x W`` images. The warp hint
-    needs ``reference_K [B,3,3]`` and ``reference_depth [B,1,H,W]`` (metric camera z, 0 = background), and
-    splats ``support`` views with the reference when given.
+    needs ``reference_K [B,3,3]`` and ``reference_depth [B,1,H,W]`` (metric camera z, 0 = background).
     """
 
     reference: Tensor
@@ -89,7 +66,6 @@ class NVSBatch:
     targets: Tensor | None = None
     reference_K: Tensor | None = None
     reference_depth: Tensor | None = None
-    support: SupportViews | None = None
 
     def validate(self) -> None:
         b = self.reference.shape[0]
@@ -112,8 +88,6 @@ class NVSBatch:
             raise ValueError(
                 f"reference_depth must be [B,1,H,W] like the reference, got {tuple(self.reference_depth.shape)}"
             )
-        if self.support is not None:
-            self.support.validate(self.reference)
 
 
 class NVSModel(nn.Module):
@@ -203,8 +177,7 @@ class NVSModel(nn.Module):
         """Warped reference (model space) and validity ``[B*V,5,s,s]``, or None without ``warp_hint``.
 
         The reference and its depth are resized to ``warp_source_size`` (area / min-pooling), splatted with a
-        2x2 bilinear footprint into the targets at the model size, together with the ``support`` views when
-        the batch has them; invalid pixels read as background.
+        2x2 bilinear footprint into the targets at the model size; invalid pixels read as background.
         """
         if not self.config.warp_hint:
             return None
@@ -220,23 +193,19 @@ class NVSModel(nn.Module):
             reference = F.interpolate(reference, size=(source, source), mode="area")
         depth = resize_depth(batch.reference_depth, source)
         ref_K = scale_intrinsics(batch.reference_K, factor)
-        references, depths, ref_w2c = reference[:, None], depth[:, None], batch.reference_w2c[:, None]
-        ref_K = ref_K[:, None]
-        if batch.support is not None:
-            support = batch.support
-            images = support.images.flatten(0, 1)
-            if images.shape[-2:] != (source, source):
-                images = F.interpolate(images, size=(source, source), mode="area")
-            references = torch.cat([references, images.unflatten(0, support.images.shape[:2])], dim=1)
-            depths = torch.cat([depths, resize_depth(support.depth, source)], dim=1)
-            ref_w2c = torch.cat([ref_w2c, support.w2c], dim=1)
-            ref_K = torch.cat([ref_K, scale_intrinsics(support.K, factor)], dim=1)
         size = self.config.image_size
         target_K = scale_intrinsics(batch.target_K, size / batch.reference.shape[-1])
         hints = []
         for i in range(reference.shape[0]):
-            warped, valid = forward_warp(references[i], depths[i], ref_w2c[i], ref_K[i], batch.target_w2c[i],
-                                         target_K[i], size)
+            warped, valid = forward_warp(
+                reference[i],
+                depth[i],
+                batch.reference_w2c[i],
+                ref_K[i],
+                batch.target_w2c[i],
+                target_K[i],
+                size,
+            )
             hints.append(torch.cat([warped * 2 - 1, valid], dim=1))
         return torch.cat(hints)
 

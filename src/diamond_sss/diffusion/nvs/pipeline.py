@@ -35,7 +35,6 @@ from diamond_sss.diffusion.nvs.model import (
     NVSBatch,
     NVSConfig,
     NVSModel,
-    SupportViews,
     hint_base,
     shared_noise,
 )
@@ -271,15 +270,13 @@ def generate_novel_views(
     cache_dir: str | Path | None = None,
     device: str = "cpu",
     geometry: GeometrySource | None = None,
-    support_views: Sequence[int] = (),
 ) -> Path:
     """Generate the ``targets`` (lattice view indices or cameras, see :func:`parse_targets`) of ``data`` under
     ``light`` from reference ``view``; returns the manifest (:mod:`~diamond_sss.diffusion.common.manifest`).
 
     A model with the warp hint needs ``geometry`` giving the reference's metric depth (stored maps or a
-    reconstruction run folder); ``support_views``, further views captured under ``light``, are splatted into
-    the hint with the reference (:class:`~diamond_sss.diffusion.nvs.model.SupportViews`). Deterministic for a
-    seed; a second call with the same model and inputs is served from the cache.
+    reconstruction run folder). Deterministic for a seed; a second call with the same model and inputs is
+    served from the cache.
     """
     dataset = OLATDataset(data, split)
     if not 0 <= view < dataset.num_views:
@@ -290,23 +287,14 @@ def generate_novel_views(
         raise ValueError(
             f"unknown light index {light} (the {split} split has lights 0..{dataset.num_lights - 1})"
         )
-    support_views = list(support_views)
-    bad = [v for v in support_views if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < dataset.num_views]
-    if bad:
-        raise ValueError(f"unknown support view index {bad} (the {split} split has views 0..{dataset.num_views - 1})")
-    for captured in [view, *support_views]:
-        if not bool(dataset.presence[captured, light]):
-            raise ValueError(f"view {captured} was not captured under light {light} in {dataset.json_path}")
-    if view in support_views:
-        raise ValueError(f"support views {support_views} repeat the reference view {view}")
+    if not bool(dataset.presence[view, light]):
+        raise ValueError(f"view {view} was not captured under light {light} in {dataset.json_path}")
     if isinstance(targets, str):
         raise TypeError(f"targets must be view indices or TargetCameras, got the string {targets!r} (parse_targets "
                         "reads the command line's form)")
     cameras = targets if isinstance(targets, TargetCameras) else TargetCameras.from_views(dataset, targets)
     model_dir = Path(model_dir) if model_dir is not None else default_model_dir()
     config = NVSModel.read_config(model_dir)
-    if support_views and not config.warp_hint:
-        raise ValueError(f"support views feed the warp hint, which the novel-view model in {model_dir} does not use")
     if config.warp_hint and geometry is None:
         raise GeometryError(
             f"the novel-view model in {model_dir} uses the warp hint and needs the reference's metric depth: "
@@ -326,9 +314,6 @@ def generate_novel_views(
             "guidance_scale": guidance_scale,
             "seed": seed,
             "geometry": geometry.key() if config.warp_hint else None,
-            **({"support": [[sha256_file(dataset.observations[dataset.observation_index(v, light)].image_path),
-                             dataset.viewmats[v].tolist(), dataset.intrinsics[v].tolist()] for v in support_views]}
-               if support_views else {}),
         }
     )
     cache = OutputCache(cache_dir if cache_dir is not None else default_cache_dir("nvs"))
@@ -339,12 +324,6 @@ def generate_novel_views(
         reference, ref_K = load_rgba_views(dataset, [view], light, size)
         depth = reference_depth(dataset, view, light, geometry, size) if model.config.warp_hint else None
         K = scale_intrinsics(cameras.K, size / cameras.size)
-        support = None
-        if support_views:
-            images, support_K = load_rgba_views(dataset, support_views, light, size)
-            depths = torch.cat([reference_depth(dataset, v, light, geometry, size) for v in support_views])
-            support = SupportViews(images[None].to(device), dataset.viewmats[support_views][None].float().to(device),
-                                   support_K[None].float().to(device), depths[None].to(device))
         batch = NVSBatch(
             reference=reference.to(device),
             reference_w2c=dataset.viewmats[view][None].float().to(device),
@@ -352,7 +331,6 @@ def generate_novel_views(
             target_K=K[None].float().to(device),
             reference_K=ref_K.float().to(device),
             reference_depth=None if depth is None else depth.to(device),
-            support=support,
         )
         generator = torch.Generator(device=device).manual_seed(seed)
         output = NovelViewPipeline(model)(batch, steps, guidance_scale, generator, size=cameras.size)

@@ -1,13 +1,11 @@
-"""Geometric warp hint of the novel-view model: the reference image(s) forward-warped into each target camera.
+"""Geometric warp hint of the novel-view model: the reference image forward-warped into each target camera.
 
 Every reference pixel with depth ``z > 0`` (metric camera z) is lifted to the world point
 ``X = R^T (z K_r^-1 [u, v, 1]^T - t)`` and projected into target camera ``w2c_t, K_t`` at continuous pixel
 coordinates ``(u', v')`` and depth ``z'``. Splatting is z-buffered: ``nearest`` writes the point into the
 pixel containing ``(u', v')``; ``bilinear`` spreads it over the 2x2 pixels around it with bilinear weights.
 A target pixel keeps the contributions within ``depth_tolerance`` (relative) of its nearest depth and takes
-their weight-normalised colour; pixels nothing reaches are invalid (colour 0). Several references (views of the
-object under the same light) are lifted together and splatted through one z-buffer: the union of what they see,
-each target pixel taking the surface nearest to it.
+their weight-normalised colour; pixels nothing reaches are invalid (colour 0).
 """
 
 from __future__ import annotations
@@ -58,14 +56,12 @@ def forward_warp(
     footprint: str = "bilinear",
     depth_tolerance: float = 0.03,
 ) -> tuple[Tensor, Tensor]:
-    """Forward-warp ``reference [C,H,W]`` (or ``R`` references ``[R,C,H,W]``) into ``V`` target cameras; see the
-    module docstring.
+    """Forward-warp ``reference [C,H,W]`` into ``V`` target cameras; see the module docstring.
 
     Args:
-        reference: image ``[C,H,W]`` or ``[R,C,H,W]`` (e.g. premultiplied RGBA in [0, 1]).
-        depth: camera z of the reference ``[1,H,W]`` (``[R,1,H,W]``) in world units, 0 = background.
-        reference_w2c: OpenCV world-to-camera ``[4,4]`` (``[R,4,4]``); reference_K: pixel intrinsics ``[3,3]``
-            (``[R,3,3]``) of ``H x W``.
+        reference: image ``[C,H,W]`` (e.g. premultiplied RGBA in [0, 1]).
+        depth: camera z of the reference ``[1,H,W]`` in world units, 0 = background.
+        reference_w2c: OpenCV world-to-camera ``[4,4]``; reference_K: pixel intrinsics ``[3,3]`` of ``H x W``.
         target_w2c: ``[V,4,4]``; target_K: ``[V,3,3]`` pixel intrinsics of the ``size x size`` output.
         size: output side in pixels.
         footprint: ``nearest`` or ``bilinear`` (2x2).
@@ -74,13 +70,11 @@ def forward_warp(
     Returns:
         warped ``[V,C,size,size]`` (0 where invalid) and validity ``[V,1,size,size]`` in {0, 1}.
     """
-    if reference.ndim == 3:
-        reference, depth, reference_w2c, reference_K = reference[None], depth[None], reference_w2c[None], reference_K[None]
-    _check("reference", reference, (None, None, None, None))
-    r, c, h, w = reference.shape
-    _check("depth", depth, (r, 1, h, w))
-    _check("reference_w2c", reference_w2c, (r, 4, 4))
-    _check("reference_K", reference_K, (r, 3, 3))
+    _check("reference", reference, (None, None, None))
+    c, h, w = reference.shape
+    _check("depth", depth, (1, h, w))
+    _check("reference_w2c", reference_w2c, (4, 4))
+    _check("reference_K", reference_K, (3, 3))
     _check("target_w2c", target_w2c, (None, 4, 4))
     v = target_w2c.shape[0]
     _check("target_K", target_K, (v, 3, 3))
@@ -91,13 +85,11 @@ def forward_warp(
     if depth_tolerance < 0:
         raise ValueError(f"depth_tolerance must be >= 0, got {depth_tolerance}")
     dtype = torch.float64
-    grid = pixel_grid(h, w, device=reference.device).reshape(-1, 2).to(dtype)
-    lifted, lifted_colors = [], []
-    for image, z, w2c, K in zip(reference, depth.reshape(r, -1).to(dtype), reference_w2c, reference_K):
-        source = z > 0
-        lifted.append(unproject_pixels(grid[source], z[source], w2c.to(dtype), K.to(dtype)))
-        lifted_colors.append(image.reshape(c, -1)[:, source].to(dtype))
-    points, colors = torch.cat(lifted), torch.cat(lifted_colors, dim=1)
+    z = depth.reshape(-1).to(dtype)
+    source = z > 0
+    uv = pixel_grid(h, w, device=reference.device).reshape(-1, 2).to(dtype)[source]
+    colors = reference.reshape(c, -1)[:, source].to(dtype)
+    points = unproject_pixels(uv, z[source], reference_w2c.to(dtype), reference_K.to(dtype))
     uv_t, z_t = project_points(points[None], target_w2c.to(dtype), target_K.to(dtype))  # [V,N,2], [V,N]
     cols, rows, weights = _footprint(uv_t, footprint)  # [V,K,N]
     depth_t = z_t[:, None].expand_as(weights)
