@@ -29,7 +29,7 @@ from diamond_sss.pipeline.run import (
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.trainer import ImageSource
-from diamond_sss.utils.io import sha256_json
+from diamond_sss.utils.io import sha256_file, sha256_json
 
 TRAIN = {"num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "iterations": 2, "raytrace_gaussians": 32,
          "mv_pixels_per_pair": 16, "log_every": 1, "device": "cpu"}
@@ -227,6 +227,27 @@ def test_sanity_checks_drop_bad_generations(setup, tmp_path):
     assert result["synthetic_images"] == 0 and sum(result["dropped"].values()) == 2
     with pytest.raises(ValueError, match="unknown stage"):
         run_pipeline(data, tmp_path / "x", config=PipelineConfig(augment=("nvs", "super-resolution")))
+
+
+def test_rounds_reuse_each_final_reconstruction_as_the_next_preliminary_one(setup, tmp_path):
+    data, _, relight, cache = setup
+    cfg = PipelineConfig(augment=("relight",), relight_lights=1, relight_model=str(relight), relight_steps=1,
+                         relight_samples=1, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache),
+                         rounds=2)
+    result = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
+    first = json.loads((tmp_path / "round1" / "pipeline.json").read_text())
+    last = json.loads((tmp_path / "pipeline.json").read_text())
+    assert first["inputs"]["pipeline"]["prelim_run"] is None and (tmp_path / "round1" / "prelim").is_dir()
+    assert last["inputs"]["pipeline"]["prelim_run"] == str(tmp_path / "round1" / "final")
+    assert last["stages"]["prelim"]["reused"] == str(tmp_path / "round1" / "final")
+    assert last["inputs"]["prelim_model_hash"] == sha256_file(tmp_path / "round1" / "final" / "model.safetensors")
+    assert result["round_psnr"] == [first["stages"]["eval"]["psnr"], result["psnr"]]
+    again = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
+    assert again == result  # both rounds resume from their records
+    for bad, message in ((replace(cfg, rounds=0), "'rounds' must be an integer >= 1, got 0"),
+                         (replace(cfg, augment=()), "'rounds' > 1 needs a diffusion stage")):
+        with pytest.raises(ValueError, match=message):
+            run_pipeline(data, tmp_path / "bad", config=bad)
 
 
 def test_parse_augment_and_missing_models(setup, tmp_path):

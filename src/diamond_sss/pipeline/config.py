@@ -19,6 +19,9 @@ class PipelineConfig:
                                                     "(default: the final reconstruction's)")
     prelim_run: str | None = described(None, "a finished reconstruction of the same real images (a `train` run "
                                              "folder with this regime and seed) reused as the preliminary one")
+    rounds: int = described(1, "rounds of the pipeline: each round after the first takes the previous round's "
+                               "final reconstruction (in <out>/round<k>) as its preliminary one and generates its "
+                               "images again from that geometry")
     nvs_views: int = described(12, "at most this many missing views generated per real light (0: all)")
     relight_lights: int = described(8, "at most this many missing lights generated per view (0: all)")
     nvs_model: str | None = described(None, "folder of a novel-view model (default: the shipped one)")

@@ -16,6 +16,8 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
                 weight; the initial hull carved with the generated views' masks too), with the multi-view losses;
 5. ``eval``     the test split (novel views under novel lights).
 
+With ``rounds`` > 1 the stages run again, each round's final reconstruction the next round's preliminary one.
+
 Generated images whose mask is empty or far from the preliminary reconstruction's silhouette
 (IoU < ``min_silhouette_iou``) are dropped and counted. The result reports ``real_share``, the share of real
 images among the final reconstruction's training images; the real images are repeated in the training index until
@@ -29,7 +31,7 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -233,6 +235,11 @@ def _checked_config(config: PipelineConfig | None) -> PipelineConfig:
         raise ValueError(f"pipeline config 'min_real_share' must be in [0, 1), got {cfg.min_real_share}")
     if not (math.isfinite(cfg.generated_as_real) and cfg.generated_as_real > 0.0):
         raise ValueError(f"pipeline config 'generated_as_real' must be a finite number > 0, got {cfg.generated_as_real}")
+    if isinstance(cfg.rounds, bool) or not isinstance(cfg.rounds, int) or cfg.rounds < 1:
+        raise ValueError(f"pipeline config 'rounds' must be an integer >= 1, got {cfg.rounds!r}")
+    if cfg.rounds > 1 and not cfg.augment:
+        raise ValueError("pipeline config 'rounds' > 1 needs a diffusion stage (--augment): without generated images "
+                         "every round is the same reconstruction")
     if not (math.isfinite(cfg.agreement_power) and cfg.agreement_power >= 0.0):
         raise ValueError(f"pipeline config 'agreement_power' must be a finite number >= 0, got {cfg.agreement_power}")
     return cfg
@@ -444,8 +451,17 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     """Run the stages above into ``out``; returns the final evaluation (plus counts) as a dict.
 
     A previous run in ``out`` with other inputs is an error, or with ``move_changed_run`` is moved aside
-    (:func:`move_aside_if_changed`) and the run starts afresh."""
+    (:func:`move_aside_if_changed`) and the run starts afresh. With ``rounds`` = R > 1, rounds 1..R-1 run into
+    ``out/round<k>`` first, each the next one's preliminary reconstruction; the last round runs into ``out`` and the
+    result lists every round's test PSNR under ``round_psnr``."""
     cfg = _checked_config(config)
+    round_psnr = []
+    for k in range(1, cfg.rounds):
+        result = run_pipeline(data, Path(out) / f"round{k}", split=split, regime=regime, preset=preset,
+                              overrides=overrides, seed=seed, config=replace(cfg, rounds=1),
+                              show_progress=show_progress, move_changed_run=move_changed_run)
+        round_psnr.append(result.get("psnr"))
+        cfg = replace(cfg, prelim_run=str(Path(out) / f"round{k}" / "final"))
     ctx, inputs = prepare_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides, seed=seed,
                               cfg=cfg, show_progress=show_progress)
     if move_changed_run and (moved := move_aside_if_changed(ctx.out, inputs)) is not None:
@@ -468,4 +484,4 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     if not (Path(data) / "transforms_test.json").is_file():
         return {**counts, "note": f"no transforms_test.json in {data}: evaluation skipped"}
     metrics = manifest.stage("eval", lambda: eval_stage(ctx))
-    return {**metrics, **counts}
+    return {**metrics, **counts, **({"round_psnr": [*round_psnr, metrics.get("psnr")]} if round_psnr else {})}
