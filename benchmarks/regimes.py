@@ -74,13 +74,16 @@ def share_value(text: str) -> float | None:
     return None if text == "auto" else float(text)
 
 
-def pipeline_setting(annotation: str, text: str) -> Any:
-    """A --pipeline-set value as the :class:`PipelineConfig` field of type ``annotation`` (e.g. ``int | None``)
-    takes it: ``None`` for an optional field, else the field's scalar type."""
+def pipeline_setting(key: str, annotation: str, text: str) -> Any:
+    """A --pipeline-set value as the :class:`PipelineConfig` field ``key`` of type ``annotation`` (e.g.
+    ``int | None``) takes it: ``None`` for an optional field, else the field's scalar type."""
     scalar = annotation.removesuffix(" | None")
     if text == "None" and scalar != annotation:
         return None
-    return {"int": int, "float": float}.get(scalar, str)(text)
+    try:
+        return {"int": int, "float": float}.get(scalar, str)(text)
+    except ValueError:
+        raise SystemExit(f"--pipeline-set {key}={text}: {key} takes {annotation}") from None
 
 
 def variant_name(method: str, real_share: float | None = DEFAULT_SHARE, agreement_power: float = DEFAULT_POWER,
@@ -127,7 +130,7 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     pipeline_keys = {f.name: f.type for f in fields(PipelineConfig)}
     config = PipelineConfig(augment=augment, prelim_run=str(prelim), min_real_share=real_share,
                             agreement_power=agreement_power,
-                            **{key: pipeline_setting(pipeline_keys[key], value)
+                            **{key: pipeline_setting(key, pipeline_keys[key], value)
                                for key, value in settings.items() if key in pipeline_keys})
     folder = runs / variant_name(method, real_share, agreement_power, tag)
     training = {key: value for key, value in settings.items() if key not in pipeline_keys}

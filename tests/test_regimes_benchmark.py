@@ -26,11 +26,12 @@ def test_variant_names_and_labels():
 
 
 def test_pipeline_settings_take_the_fields_types():
-    assert regimes.pipeline_setting("int", "0") == 0 and regimes.pipeline_setting("float | None", "0.7") == 0.7
-    assert regimes.pipeline_setting("float | None", "None") is None
-    assert regimes.pipeline_setting("str | None", "models/nvs") == "models/nvs"
-    with pytest.raises(ValueError):
-        regimes.pipeline_setting("int", "many")
+    assert regimes.pipeline_setting("rounds", "int", "2") == 2
+    assert regimes.pipeline_setting("min_real_share", "float | None", "0.7") == 0.7
+    assert regimes.pipeline_setting("min_real_share", "float | None", "None") is None
+    assert regimes.pipeline_setting("nvs_model", "str | None", "models/nvs") == "models/nvs"
+    with pytest.raises(SystemExit, match="--pipeline-set rounds=many: rounds takes int"):
+        regimes.pipeline_setting("rounds", "int", "many")
 
 
 def _row(name: str, regime: str, method: str, psnr: float, iou: float) -> dict:
