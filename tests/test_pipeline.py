@@ -58,6 +58,10 @@ def test_write_capture_keeps_the_lattice(setup, tmp_path):
     assert torch.allclose(generated.viewmats, real.viewmats, atol=1e-5)
     assert torch.allclose(generated.intrinsics, real.intrinsics, atol=1e-4)
     assert torch.equal(generated.load(0).rgb, real.load(4).rgb)
+    outside = GeneratedImage(6, 0, picks[0].image_path)
+    with pytest.raises(ValueError, match=r"view 6 / light 0 outside the lattice's 6 views x 3 lights"):
+        write_capture(tmp_path, "bad", real, [outside])
+    assert not (tmp_path / "transforms_bad.json").exists()
 
 
 def test_target_real_share_grows_with_the_real_images():

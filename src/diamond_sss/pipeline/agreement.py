@@ -21,6 +21,7 @@ from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.images import load_rgba
 from diamond_sss.diffusion.common.manifest import GeneratedImage
+from diamond_sss.pipeline.capture import check_on_lattice
 from diamond_sss.scene.model import RelightableScene
 
 
@@ -37,10 +38,7 @@ def agreement_factors(errors: list[float], power: float) -> list[float]:
 def render_errors(scene: RelightableScene, lattice: OLATDataset, items: list[GeneratedImage]) -> list[float]:
     """``e_i`` of each generated image against ``scene`` rendered at its view and light of ``lattice``."""
     errors, device = [], scene.gaussians.means.device
-    for item in items:
-        if not (0 <= item.view < len(lattice.cameras) and 0 <= item.light < len(lattice.lights)):
-            raise ValueError(f"{item.image}: view {item.view} / light {item.light} outside the lattice's "
-                             f"{len(lattice.cameras)} views x {len(lattice.lights)} lights")
+    for item in check_on_lattice(items, lattice):
         rgb, mask = load_rgba(item.image, item.mask)
         camera, light = lattice.cameras[item.view], lattice.lights[item.light]
         if (rgb.shape[1], rgb.shape[0]) != (camera.width, camera.height):

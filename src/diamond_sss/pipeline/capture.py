@@ -30,8 +30,19 @@ def lattice_header(lattice: OLATDataset) -> dict:
     return {"cameras": cameras, "lights": lights}
 
 
+def check_on_lattice(items: list[GeneratedImage], lattice: OLATDataset) -> list[GeneratedImage]:
+    """``items`` as they are when every view and light index is one of ``lattice``'s; else a ``ValueError`` naming
+    the first image outside it (only a hand-edited manifest can hold one)."""
+    for item in items:
+        if not (0 <= item.view < len(lattice.cameras) and 0 <= item.light < len(lattice.lights)):
+            raise ValueError(f"{item.image}: view {item.view} / light {item.light} outside the lattice's "
+                             f"{len(lattice.cameras)} views x {len(lattice.lights)} lights")
+    return items
+
+
 def write_capture(folder: Path, name: str, lattice: OLATDataset, images: list[GeneratedImage]) -> Path:
     """Write ``folder/transforms_<name>.json`` listing ``images`` on ``lattice``; returns its path."""
+    check_on_lattice(images, lattice)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     header = lattice_header(lattice)

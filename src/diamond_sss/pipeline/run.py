@@ -44,7 +44,7 @@ from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, read_image_mani
 from diamond_sss.evaluation.metrics import mask_iou
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.pipeline.agreement import agreement_factors, render_errors
-from diamond_sss.pipeline.capture import GeneratedImage, write_capture
+from diamond_sss.pipeline.capture import GeneratedImage, check_on_lattice, write_capture
 from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
 from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.overrides import make_config
@@ -304,7 +304,7 @@ class SilhouetteFilter:
     def keep(self, items: list[GeneratedImage]) -> list[GeneratedImage]:
         """The ``items`` that pass, in order; the others are counted in :attr:`dropped`."""
         kept = []
-        for item in items:
+        for item in check_on_lattice(items, self.ctx.real):
             ok, reason = _silhouette_ok(item.image, item.mask, self.reference_alpha(item.view), self.ctx.cfg)
             if ok:
                 kept.append(item)
