@@ -5,7 +5,10 @@ Each variant is a preset plus config overrides, trained on one capture regime wi
 training images (can it fit at all?), with the test error split by region (``evaluation/regions.py``:
 silhouette, back-lit, cast shadow, highlight, lit). The noise ceiling comes from a second render of the test
 split with independent Monte Carlo noise (``evaluation/noise.py``), rendered once from the capture's
-``meta.json`` with ``--render-noise-reference`` (Mitsuba) or given with ``--noise-reference``.
+``meta.json`` with ``--render-noise-reference`` (Mitsuba) or given with ``--noise-reference``. With
+``--cross-splits`` each variant is also scored on novel views under training lights and on training views under
+novel lights (``diamond-sss synth --cross-splits``; rendered into the noise reference when the data lacks them),
+which splits the test error into what a novel view and a novel light cost.
 
     python benchmarks/quality.py --iterations 1000 --render-noise-reference \\
         --variants base "srgb:photometric_space=srgb" "mlp64:sss_width=64,sss_lr=0.005"
@@ -40,6 +43,7 @@ RESULTS = Path(__file__).resolve().parent / "results" / "quality"
 RUNS = Path("outputs") / "benchmarks" / "quality"
 REGION_COLUMNS = ("silhouette", "back_lit", "shadow", "lit")
 TRAIN_IMAGES = 96
+CROSS_SPLITS = ("novel_view", "novel_light")
 
 
 def parse_variant(text: str) -> tuple[str, dict]:
@@ -55,17 +59,28 @@ def settings_hash(preset: str, overrides: dict) -> str:
     return hashlib.sha256(json.dumps([preset, overrides], sort_keys=True).encode()).hexdigest()[:8]
 
 
-def measured_ceiling(data: Path, reference: Path | None, render: bool, runs: Path) -> dict | None:
-    """The noise ceiling of ``data``'s test split, rendering the second copy first when asked."""
-    if reference is None and render:
+def noise_reference(data: Path, reference: Path | None, render: bool, cross_splits: bool, runs: Path) -> Path | None:
+    """The folder of ``data``'s test split rendered again with independent noise (and, with ``cross_splits``, the
+    ``novel_view`` / ``novel_light`` splits when ``data`` lacks them), rendering it first when asked."""
+    if reference is None and (render or cross_splits):
         from diamond_sss.synth.render import noise_reference_config, synthesize
 
         reference = runs / "noise_reference" / data.name
-        if not (reference / "transforms_test.json").is_file():
-            synthesize(noise_reference_config(data, reference))
-    if reference is None:
-        return None
-    return noise_ceiling(OLATDataset(data, "test"), OLATDataset(reference, "test"))
+        needs_cross = cross_splits and not all((folder / f"transforms_{split}.json").is_file()
+                                               for folder in (data, reference) for split in CROSS_SPLITS)
+        if needs_cross or not (reference / "transforms_test.json").is_file():
+            synthesize(noise_reference_config(data, reference, cross_splits=needs_cross))
+    return reference
+
+
+def cross_split_folder(data: Path, reference: Path | None) -> Path:
+    """The folder that holds the ``novel_view`` and ``novel_light`` splits: ``data`` itself, else ``reference``."""
+    for folder in (data, reference):
+        if folder is not None and all((folder / f"transforms_{split}.json").is_file() for split in CROSS_SPLITS):
+            return folder
+    raise SystemExit(f"--cross-splits: neither {data} nor the noise reference {reference} holds "
+                     f"transforms_novel_view.json and transforms_novel_light.json (render them with "
+                     f"`diamond-sss synth --cross-splits`, or drop --noise-reference to render them here)")
 
 
 def main() -> None:
@@ -79,12 +94,16 @@ def main() -> None:
                         help="the test split rendered again with independent noise")
     parser.add_argument("--render-noise-reference", action="store_true",
                         help="render that second test split from the capture's meta.json (Mitsuba)")
+    parser.add_argument("--cross-splits", action="store_true",
+                        help="also score novel views under training lights and training views under novel lights")
     parser.add_argument("--out", type=Path, default=RUNS, help="run folders (resumable)")
     parser.add_argument("--results", type=Path, default=RESULTS, help="where the tables and figures are written")
     parser.add_argument("--tag", default="quality", help="file name of the table (<tag>.md / <tag>.json)")
     args = parser.parse_args()
     data = args.data or embedded_dataset()
-    ceiling = measured_ceiling(data, args.noise_reference, args.render_noise_reference, args.out)
+    reference = noise_reference(data, args.noise_reference, args.render_noise_reference, args.cross_splits, args.out)
+    ceiling = noise_ceiling(OLATDataset(data, "test"), OLATDataset(reference, "test")) if reference else None
+    cross = cross_split_folder(data, reference) if args.cross_splits else None
     ceiling_db = ceiling["ceiling_psnr"] if ceiling else math.nan
     test = OLATDataset(data, "test")
     args.results.mkdir(parents=True, exist_ok=True)
@@ -98,6 +117,8 @@ def main() -> None:
         minutes = (time.perf_counter() - started) / 60
         scores = evaluate_run(run, data, split="test", figures=0, show_progress=False)
         fit = evaluate_run(run, data, split="train", figures=0, max_images=TRAIN_IMAGES, show_progress=False)
+        split_psnr = {split: evaluate_run(run, cross, split=split, figures=0, show_progress=False)["psnr"]
+                      for split in (CROSS_SPLITS if cross else ())}
         scene, _ = load_scene(run, torch.device("cpu"))
         regions = region_errors(scene, test).summary()
         save_region_figure(args.results / f"regions_{args.tag}_{name}.png", scene, test, [0, len(test) // 3, 2 * len(test) // 3],
@@ -105,9 +126,10 @@ def main() -> None:
         rows.append({"variant": name, "overrides": overrides, "preset": args.preset, "regime": args.regime,
                      "iterations": args.iterations, "gaussians": result.num_gaussians, "minutes": minutes,
                      "train_psnr": fit["psnr"], **{k: scores[k] for k in ("psnr", "ssim", "masked_psnr", "mask_iou")},
-                     "regions": regions, "ceiling_psnr": ceiling_db})
+                     "regions": regions, "ceiling_psnr": ceiling_db, "split_psnr": split_psnr})
         print(f"{name}: test {scores['psnr']:.2f} dB, train {fit['psnr']:.2f} dB, {minutes:.1f} min", flush=True)
-    header = ("| variant | overrides | Gaussians | train PSNR | test PSNR | SSIM | masked PSNR | IoU | "
+    cross_header = "novel view, training lights | training view, novel lights | " if cross else ""
+    header = ("| variant | overrides | Gaussians | train PSNR | " + cross_header + "test PSNR | SSIM | masked PSNR | IoU | "
               + " | ".join(f"{r} PSNR (err %)" for r in REGION_COLUMNS) + " | ceiling | gap | min |")
     lines = [f"`{args.preset}`, regime `{args.regime}`, {args.iterations} steps (`short_schedule`), "
              f"{data.name}; ceiling: " + (f"{ceiling_db:.2f} dB (two renders differ by {ceiling['render_psnr']:.2f} "
@@ -117,7 +139,9 @@ def main() -> None:
         region_cells = " | ".join(f"{r['regions'][k]['psnr']:.1f} ({100 * r['regions'][k]['error_share']:.0f})"
                                   for k in REGION_COLUMNS)
         settings = ", ".join(f"{k}={v}" for k, v in r["overrides"].items()) or "-"
-        lines.append(f"| {r['variant']} | {settings} | {r['gaussians']} | {r['train_psnr']:.2f} | {r['psnr']:.2f} | "
+        cross_cells = "".join(f"{r['split_psnr'][split]:.2f} | " for split in r["split_psnr"])
+        lines.append(f"| {r['variant']} | {settings} | {r['gaussians']} | {r['train_psnr']:.2f} | {cross_cells}"
+                     f"{r['psnr']:.2f} | "
                      f"{r['ssim']:.4f} | {r['masked_psnr']:.2f} | {r['mask_iou']:.3f} | {region_cells} | "
                      f"{ceiling_db:.2f} | {ceiling_db - r['psnr']:.2f} | {r['minutes']:.1f} |")
     (args.results / f"{args.tag}.json").write_text(json.dumps({"ceiling": ceiling, "rows": rows}, indent=2) + "\n")

@@ -26,6 +26,8 @@ from diamond_sss.shading import (
     smith_g1,
     visibility_from_sh,
 )
+from diamond_sss.shading.deferred import LIGHT_FALLOFFS
+from diamond_sss.training.overrides import CHOICES, make_config
 
 
 def sphere_quadrature(
@@ -433,6 +435,39 @@ def test_deferred_flat_plane_matches_hand_computation():
     torch.testing.assert_close(
         result.radiance[0, 2, 2], torch.tensor(centre, dtype=torch.float32), rtol=1e-5, atol=1e-6
     )
+
+
+def test_deferred_inverse_square_falloff_relative_to_the_centre():
+    gbuffer, w2c, K, light_pos, light_rgb = plane_scene(size=5, light_height=2.0)
+    scale = torch.tensor(0.5)
+    plain = deferred_shade(gbuffer, w2c, K, light_pos, light_rgb, scale)
+    center = torch.tensor([0.0, 0.0, -1.0])
+    fallen = deferred_shade(gbuffer, w2c, K, light_pos, light_rgb, scale, falloff_center=center)
+    for i, j in ((2, 2), (0, 0), (1, 4)):
+        x = np.array([2.0 * (j + 0.5 - 2.5) / 4.0, -2.0 * (i + 0.5 - 2.5) / 4.0, 0.0])
+        factor = 3.0**2 / np.sum((np.array([0.0, 0.0, 2.0]) - x) ** 2)  # |p - c|^2 / |p - x|^2
+        torch.testing.assert_close(fallen.radiance[0, i, j], plain.radiance[0, i, j] * float(factor))
+        torch.testing.assert_close(fallen.residual[0, i, j], plain.residual[0, i, j] * float(factor))
+    # a surface point at the centre's distance from the light is lit as without falloff
+    same = deferred_shade(gbuffer, w2c, K, light_pos, light_rgb, scale, falloff_center=torch.zeros(3))
+    torch.testing.assert_close(same.radiance[0, 2, 2], plain.radiance[0, 2, 2])
+    light = light_pos.double().requires_grad_()
+
+    def shade(position):
+        double = GBuffer(**{name: getattr(gbuffer, name).double() for name in
+                            ("normal", "base_color", "roughness", "metallic", "subsurface", "visibility", "incident",
+                             "residual", "depth", "alpha")})
+        return deferred_shade(double, w2c.double(), K.double(), position, light_rgb.double(), scale.double(),
+                              falloff_center=center.double()).radiance
+
+    assert torch.autograd.gradcheck(shade, (light,))
+
+
+def test_scene_light_falloff_is_a_checked_config_key():
+    assert make_config("diamond").shading.light_falloff == "none"  # as SSS-3DGS
+    assert CHOICES["shading.light_falloff"] == LIGHT_FALLOFFS
+    with pytest.raises(ValueError, match="shading.light_falloff"):
+        make_config("diamond", overrides={"light_falloff": "linear"})
 
 
 def test_deferred_alpha_premultiplies_and_decomposes():

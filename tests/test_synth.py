@@ -319,6 +319,29 @@ def test_synthesize_writes_the_olat_format(tmp_path):
         assert all(not np.allclose(test_light, p) for p in light_sets["train"])
 
 
+@needs_mitsuba
+def test_cross_splits_pair_test_cameras_with_training_lights_and_back(tmp_path):
+    stage = LightStageConfig(views=4, lights=3, test_views=2, test_lights=1, fov_x_deg=40.0)
+    config = SynthConfig(shape="blob", material="soap", out=tmp_path, stage=stage, size=16, spp=4, seed=0,
+                         mesh_resolution=24, train=False, cross_splits=True)
+    pairs = plan_pairs(config)
+    # the 2 test views under the middle training light; training views 1 and 3 (spread) under the test light
+    assert pairs == {"train": [], "test": [(0, 0), (1, 0)], "novel_view": [(0, 1), (1, 1)],
+                     "novel_light": [(1, 0), (3, 0)]}
+    assert plan_pairs(replace(config, cross_splits=False)) == {"train": [], "test": [(0, 0), (1, 0)]}
+    synthesize(config)
+    saved = json.loads((tmp_path / "meta.json").read_text())
+    rig = {kind: {split: np.array(saved[kind][split]) for split in ("train", "test")} for kind in ("cameras", "lights")}
+    for split, (camera_set, light_set) in (("novel_view", ("test", "train")), ("novel_light", ("train", "test"))):
+        frames = json.loads((tmp_path / f"transforms_{split}.json").read_text())["frames"]
+        for frame, view in zip(frames, sorted({v for v, _ in pairs[split]}), strict=True):
+            np.testing.assert_allclose(frame["transform_matrix"], rig["cameras"][camera_set][view])
+            lights = [light for v, light in pairs[split] if v == view]
+            np.testing.assert_allclose(frame["light_positions"], rig["lights"][light_set][lights])
+            assert all(rel.startswith(f"{split}/") for rel in frame["file_paths"])
+    assert image_seed(0, "novel_view", 0, 1) != image_seed(0, "novel_light", 0, 1) != image_seed(0, "test", 0, 1)
+
+
 def test_cli_rejects_unknown_names_with_the_valid_ones(tmp_path):
     with pytest.raises(ValueError, match="valid shapes: .*torus"):
         synth(shape="cube", material="wax", out=tmp_path)

@@ -26,6 +26,7 @@ def synth(
     fov_x_deg: float = 32.0,
     noise_seed: int = 0,
     train: bool = True,
+    cross_splits: bool = False,
 ) -> None:
     """Render a physically based OLAT capture of a procedural translucent object (Mitsuba 3, volpath).
 
@@ -53,6 +54,9 @@ def synth(
         noise_seed: Non-zero: the same images with independent Monte Carlo noise (a second render of a
             capture measures its noise ceiling: see benchmarks/quality.py).
         train: Render the training lattice (--no-train: only the test split).
+        cross_splits: Also render ``novel_view`` (the test views under evenly spread training lights) and
+            ``novel_light`` (evenly spread training views under the test lights): they split the test error into
+            what a novel view and a novel light cost (see benchmarks/quality.py --cross-splits).
     """
     from tqdm import tqdm
 
@@ -86,6 +90,7 @@ def synth(
         seed=seed,
         noise_seed=noise_seed,
         train=train,
+        cross_splits=cross_splits,
     )
     total = sum(len(p) for p in plan_pairs(config).values())
     with tqdm(total=total, desc=f"synth {shape}/{material}", unit="img") as bar:

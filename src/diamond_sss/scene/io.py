@@ -21,6 +21,7 @@ class SceneSettings(Protocol):
     sss_width: int
     light_init: float
     mixed_precision: bool
+    light_falloff: str
 
 
 def scene_tensors(scene: RelightableScene) -> dict[str, Tensor]:
@@ -34,7 +35,7 @@ def scene_from_tensors(tensors: dict[str, Tensor], cfg: SceneSettings) -> Religh
     model = GaussianModel.from_state_tensors({k[len(prefix):]: v for k, v in tensors.items()
                                               if k.startswith(prefix)})
     scene = RelightableScene(model, sss_width=cfg.sss_width, light_init=cfg.light_init,
-                             mixed_precision=cfg.mixed_precision)
+                             mixed_precision=cfg.mixed_precision, light_falloff=cfg.light_falloff)
     scene.load_state_dict(tensors)
     return scene
 

@@ -20,7 +20,7 @@ from torch import Tensor, nn
 from diamond_sss.data.conventions import camera_centers
 from diamond_sss.gaussians.model import GaussianModel
 from diamond_sss.rendering.rasterize import RasterOutput, rasterize
-from diamond_sss.shading.deferred import GBuffer, ShadingResult, deferred_shade
+from diamond_sss.shading.deferred import LIGHT_FALLOFFS, GBuffer, ShadingResult, deferred_shade
 from diamond_sss.shading.sh import visibility_from_sh
 from diamond_sss.shading.sss_mlp import SSSMLPConfig, SSSResidualMLP, light_geometry
 
@@ -46,14 +46,17 @@ class RelightableScene(nn.Module):
 
     def __init__(self, gaussians: GaussianModel, sss_width: int = 32, light_init: float = -1.0,
                  scene_center: Tensor | None = None, scene_radius: float = 1.0,
-                 mixed_precision: bool = False) -> None:
+                 mixed_precision: bool = False, light_falloff: str = "none") -> None:
         super().__init__()
+        if light_falloff not in LIGHT_FALLOFFS:
+            raise ValueError(f"light_falloff must be one of {LIGHT_FALLOFFS}, got {light_falloff!r}")
         self.gaussians = gaussians
         self.mlp = SSSResidualMLP(SSSMLPConfig(width=sss_width))
         self.log_light_scale = nn.Parameter(torch.tensor(float(light_init)))
         self.register_buffer("scene_center", torch.zeros(3) if scene_center is None else scene_center.float().clone())
         self.register_buffer("scene_radius", torch.tensor(float(scene_radius)))
         self.mixed_precision = mixed_precision
+        self.light_falloff = light_falloff
 
     @property
     def light_scale(self) -> Tensor:
@@ -104,7 +107,8 @@ class RelightableScene(nn.Module):
         raster = rasterize(g.means, g.quats, g.scales, g.opacities, features, viewmats, Ks, width, height,
                            backend=backend)
         gbuffer = GBuffer.from_features(raster.features, raster.depth, raster.alpha)
-        shading = deferred_shade(gbuffer, viewmats, Ks, light_positions, light_intensities, self.light_scale)
+        shading = deferred_shade(gbuffer, viewmats, Ks, light_positions, light_intensities, self.light_scale,
+                                 self.scene_center if self.light_falloff == "inverse_square" else None)
         return SceneRender(shading=shading, gbuffer=gbuffer, raster=raster)
 
     def render_geometry(self, viewmats: Tensor, Ks: Tensor, width: int, height: int,

@@ -1,7 +1,8 @@
 """Deferred SSS shading of a rasterized G-buffer (method.md section 3).
 
 Per pixel, with ``x`` the surface point back-projected from the expected depth,
-``w_l = normalize(p_light - x)``, ``w_v = normalize(c_cam - x)`` and ``I = light_scale * light_rgb``:
+``w_l = normalize(p_light - x)``, ``w_v = normalize(c_cam - x)`` and ``I = light_scale * light_rgb``
+(times ``|p_light - c|^2 / |p_light - x|^2`` with ``light_falloff = "inverse_square"``, see below):
 
     L_pbr = (n.w_l) L_in I (f_d + f_s)            (GGX, UE4 metalness; see :mod:`.ggx`)
     L_sss = R I
@@ -12,8 +13,12 @@ Choices (following the public SSS-3DGS code, where the papers are silent):
 * Light transport: the MLP's incident light ``L_in`` is the only shadowing / attenuation factor in
   ``L_pbr``. The blended SH visibility ``V_SH`` does not enter the shading; it is kept in the G-buffer
   for ``L_incident`` (``L1(clamp(L_in), V_SH)``), which ties ``L_in`` to visibility.
-* No inverse-square falloff: SSS-3DGS applies none (only a debug "simulated point light" mode does).
-  The MLP sees the light distance and can fold any falloff into ``L_in`` and ``R``; the learnable global
+* Falloff (``light_falloff``): ``"none"``, as SSS-3DGS (only its debug "simulated point light" mode has
+  one): the MLP sees the light distance and must fold the falloff into ``L_in`` and ``R``, per Gaussian,
+  from the training lights alone. ``"inverse_square"``: a point light's irradiance, relative to the scene
+  centre ``c``: ``I (|p_light - c| / |p_light - x|)^2``, so the global light scale keeps its meaning (the
+  intensity at the centre's distance); a capture whose lights lie at different distances from the object
+  leaves the ``1 / |p_light - c|^2`` between lights to the MLP and the light scale. The learnable global
   light scale absorbs the capture's units.
 * The whole image is linear in the light's intensity: both ``L_pbr`` and the residual ``R`` are scaled
   by ``I``. SSS-3DGS tints ``R`` by the light RGB per Gaussian before blending, which is the same since
@@ -43,6 +48,7 @@ GBUFFER_FEATURES = (
     ("residual", 3),
 )
 GBUFFER_FEATURE_DIM = sum(channels for _, channels in GBUFFER_FEATURES)
+LIGHT_FALLOFFS = ("none", "inverse_square")
 
 
 @dataclass
@@ -132,12 +138,14 @@ def deferred_shade(
     light_pos: Tensor,
     light_rgb: Tensor,
     light_scale: Tensor,
+    falloff_center: Tensor | None = None,
 ) -> ShadingResult:
     """Shade a G-buffer under one point light per image (see the module docstring for the equations).
 
     ``w2c [B, 4, 4]`` (OpenCV world-to-camera), ``K [B, 3, 3]`` (pixels), ``light_pos [B, 3]`` (world),
     ``light_rgb [B, 3]`` (the light's RGB intensity), ``light_scale`` (scalar tensor, the global light
-    intensity already exponentiated). Differentiable in every input.
+    intensity already exponentiated), ``falloff_center [3]`` (world; ``None``: no falloff) the point ``c`` of
+    the inverse-square falloff. Differentiable in every input.
     """
     batch = gbuffer.alpha.shape[0]
     for name, value, shape in (
@@ -155,6 +163,10 @@ def deferred_shade(
     light_dir = F.normalize(light_pos[:, None, None, :] - points, dim=-1)
     view_dir = F.normalize(camera_centers(w2c)[:, None, None, :] - points, dim=-1)
     intensity = (light_scale.reshape(()) * light_rgb)[:, None, None, :]
+    if falloff_center is not None:
+        to_light = light_pos[:, None, None, :] - points
+        center_distance2 = (light_pos - falloff_center).square().sum(-1)[:, None, None, None]
+        intensity = intensity * center_distance2 / to_light.square().sum(-1, keepdim=True).clamp_min(1e-12)
 
     terms = pbr_shade(
         gbuffer.normal,

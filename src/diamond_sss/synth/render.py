@@ -31,7 +31,7 @@ import torch
 from diamond_sss.data.conventions import opengl_c2w_to_opencv_w2c
 from diamond_sss.data.errors import DataError
 from diamond_sss.synth.materials import TranslucentMaterial, get_material
-from diamond_sss.synth.scene import LightStage, LightStageConfig, build_light_stage
+from diamond_sss.synth.scene import LightStage, LightStageConfig, build_light_stage, interleaved_test_indices
 from diamond_sss.synth.shapes import TriangleMesh, build_shape
 from diamond_sss.synth.writer import (
     FrameRecord,
@@ -85,7 +85,7 @@ def image_seed(object_seed: int, split: str, view: int, light: int, noise_seed: 
 
     A non-zero ``noise_seed`` gives the same image with independent Monte Carlo noise.
     """
-    split_id = {"train": 0, "test": 1, "probe": 2, "geometry": 3}[split]
+    split_id = {"train": 0, "test": 1, "probe": 2, "geometry": 3, "novel_view": 4, "novel_light": 5}[split]
     sequence = np.random.SeedSequence([object_seed, split_id, view, light] + ([noise_seed] if noise_seed else []))
     return int(sequence.generate_state(1, dtype=np.uint32)[0])
 
@@ -272,6 +272,17 @@ def parse_subset(spec: str, views: int, lights: int) -> dict[str, list[tuple[int
     return out
 
 
+SPLIT_RIGS: dict[str, tuple[str, str]] = {
+    "train": ("train", "train"),
+    "test": ("test", "test"),
+    "novel_view": ("test", "train"),
+    "novel_light": ("train", "test"),
+}
+"""Per split, the rig sets its ``(cameras, lights)`` come from. ``novel_view`` (test cameras under training lights)
+and ``novel_light`` (training cameras under test lights) split the test split's error into what a novel view and a
+novel light cost."""
+
+
 @dataclass(frozen=True)
 class SynthConfig:
     """Everything that defines one synthetic object capture."""
@@ -288,10 +299,12 @@ class SynthConfig:
     mesh_resolution: int = 64
     noise_seed: int = 0
     train: bool = True
+    cross_splits: bool = False
 
 
-def noise_reference_config(data: Path, out: Path, noise_seed: int = 1) -> SynthConfig:
-    """The test split of the capture in ``data`` (read from its ``meta.json``) with independent noise.
+def noise_reference_config(data: Path, out: Path, noise_seed: int = 1, cross_splits: bool = False) -> SynthConfig:
+    """The test split of the capture in ``data`` (read from its ``meta.json``) with independent noise, and with
+    ``cross_splits`` the ``novel_view`` and ``novel_light`` splits (:data:`SPLIT_RIGS`).
 
     Same object, rig, exposure and sample count; only the samplers' seeds change. Rendered into ``out``.
     """
@@ -305,14 +318,16 @@ def noise_reference_config(data: Path, out: Path, noise_seed: int = 1) -> SynthC
         return SynthConfig(shape=meta["shape"]["name"], material=meta["material"]["name"], out=Path(out),
                            stage=LightStageConfig(**stage), size=int(meta["size"][0]), spp=int(meta["spp"]),
                            seed=int(meta["seed"]), mesh_resolution=int(meta["shape"]["mesh_resolution"]),
-                           noise_seed=noise_seed, train=False)
+                           noise_seed=noise_seed, train=False, cross_splits=cross_splits)
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
         raise DataError(f"{path}: not a `diamond-sss synth` meta file ({type(exc).__name__}: {exc})") from exc
 
 
 def plan_pairs(config: SynthConfig) -> dict[str, list[tuple[int, int]]]:
-    """``(view, light)`` pairs rendered per split: the full (or subset) training lattice and the full
-    test lattice (novel views x novel lights; empty when either count is 0)."""
+    """``(view, light)`` pairs rendered per split: the full (or subset) training lattice, the full test lattice
+    (novel views x novel lights; empty when either count is 0) and, with ``cross_splits``, ``novel_view`` (every
+    test view under ``test_lights`` evenly spread training lights) and ``novel_light`` (``test_views`` evenly spread
+    training views under every test light)."""
     st = config.stage
     if not config.train:
         train = []
@@ -322,7 +337,13 @@ def plan_pairs(config: SynthConfig) -> dict[str, list[tuple[int, int]]]:
     else:
         train = [(v, l) for v in range(st.views) for l in range(st.lights)]
     test = [(v, l) for v in range(st.test_views) for l in range(st.test_lights)]
-    return {"train": train, "test": test}
+    pairs = {"train": train, "test": test}
+    if config.cross_splits and test:
+        spread_lights = interleaved_test_indices(st.lights, min(st.test_lights, st.lights)).tolist()
+        spread_views = interleaved_test_indices(st.views, min(st.test_views, st.views)).tolist()
+        pairs["novel_view"] = [(v, l) for v in range(st.test_views) for l in spread_lights]
+        pairs["novel_light"] = [(v, l) for v in spread_views for l in range(st.test_lights)]
+    return pairs
 
 
 def synthesize(config: SynthConfig, on_image: Callable[[], None] | None = None) -> dict:
@@ -342,7 +363,7 @@ def synthesize(config: SynthConfig, on_image: Callable[[], None] | None = None) 
     exposure = compute_exposure(renderer, stage.train_c2w, stage.train_lights, config.seed)
     pairs = plan_pairs(config)
     out = Path(config.out)
-    for split in ("train", "test"):
+    for split in pairs:
         if pairs[split]:
             frames = _render_split(renderer, stage, split, pairs[split], exposure, config, on_image)
             write_transforms(out, split, stage.fov_x, config.size, config.size, frames)
@@ -393,8 +414,9 @@ def _render_split(
     config: SynthConfig,
     on_image: Callable[[], None] | None,
 ) -> list[FrameRecord]:
-    c2ws = stage.train_c2w if split == "train" else stage.test_c2w
-    lights = stage.train_lights if split == "train" else stage.test_lights
+    camera_set, light_set = SPLIT_RIGS[split]
+    c2ws = stage.train_c2w if camera_set == "train" else stage.test_c2w
+    lights = stage.train_lights if light_set == "train" else stage.test_lights
     out = Path(config.out)
     frames = []
     for view in sorted({v for v, _ in pairs}):

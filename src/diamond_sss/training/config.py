@@ -110,6 +110,8 @@ class Shading:
     light_init_from_data: bool = _key(True, "calibrate the initial light scale from the images")
     random_background: bool = _key(False, "train on random background colours")
     mixed_precision: bool = _key(True, "bfloat16 autocast of the subsurface-scattering MLP on CUDA")
+    light_falloff: str = _key("none", "point-light falloff in the shading: none (as SSS-3DGS: the MLP learns it "
+                              "from the light distance) | inverse_square (relative to the scene centre)")
 
 
 @dataclass

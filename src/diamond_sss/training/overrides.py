@@ -135,7 +135,8 @@ POSITIVE_KEYS = ("schedule.iterations", "schedule.batch_size", "gaussians.count"
                  "raytrace.every", "multiview.target_downscale")
 
 CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"), "gaussians.hull_masks": ("real", "all"),
-           "losses.photometric_space": ("linear", "srgb"), "multiview.target_mode": ("nearest-k", "random")}
+           "losses.photometric_space": ("linear", "srgb"), "multiview.target_mode": ("nearest-k", "random"),
+           "shading.light_falloff": ("none", "inverse_square")}
 
 
 def validate_config(config: TrainConfig) -> None:

@@ -183,7 +183,8 @@ class Trainer:
         light_init = self.calibrated_light_init() if shading.light_init_from_data else shading.light_init
         return RelightableScene(model, sss_width=shading.sss_width, light_init=light_init,
                                 scene_center=self.bounds.center, scene_radius=self.bounds.radius,
-                                mixed_precision=shading.mixed_precision).to(self.device)
+                                mixed_precision=shading.mixed_precision,
+                                light_falloff=shading.light_falloff).to(self.device)
 
     def calibrated_light_init(self, max_images: int = 64) -> float:
         """``log`` of a global light scale matched to the capture's units (Tab. 3's ``light_init`` = -1 is
