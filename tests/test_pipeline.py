@@ -143,7 +143,7 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
     assert manifest["stages"]["relight"]["images"] == 4
     assert result["synthetic_images"] == 6 and result["real_images"] == 2 and result["real_share"] == 0.25
     assert manifest["stages"]["final"]["real_share"] == 0.25
-    agreement = manifest["stages"]["final"]["image_factors"]
+    agreement = manifest["stages"]["final"]["agreement"]
     # the 3 of 6 generated images above the median error lose weight
     assert 0.0 < agreement["min_factor"] < agreement["mean_factor"] < 1.0 and agreement["down_weighted"] == 3
     assert {"psnr", "ssim", "mask_iou"} <= set(result)
@@ -153,15 +153,6 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
     assert again["psnr"] == result["psnr"]
     with pytest.raises(ValueError, match="other inputs"):
         run_pipeline(data, tmp_path, regime="views=3,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
-    # novel_view_weight 0: the 4 images at the 2 generated views (2 novel, 2 relit) lose their photometric weight,
-    # the 2 relit real views keep alpha; the diffusion outputs come from the cache
-    silhouettes_only = replace(cfg, agreement_power=0.0, novel_view_weight=0.0, prelim_run=str(tmp_path / "prelim"))
-    run_pipeline(data, tmp_path / "nv0", regime="views=2,lights=1", overrides=TRAIN, config=silhouettes_only,
-                 show_progress=False)
-    factors = json.loads((tmp_path / "nv0" / "pipeline.json").read_text())["stages"]["final"]["image_factors"]
-    assert factors == {"mean_factor": round(2 / 6, 4), "min_factor": 0.0, "down_weighted": 4}
-    with pytest.raises(ValueError, match="'novel_view_weight' must be a finite number >= 0, got -1"):
-        run_pipeline(data, tmp_path / "bad", config=replace(cfg, novel_view_weight=-1.0))
 
 
 def test_prelim_reuses_a_finished_reconstruction(setup, tmp_path):
@@ -177,7 +168,7 @@ def test_prelim_reuses_a_finished_reconstruction(setup, tmp_path):
     assert manifest["stages"]["prelim"]["reused"] == str(base)
     assert not (tmp_path / "run" / "prelim").exists()
     assert result["real_images"] == 2 and result["synthetic_images"] == 2 and result["real_share"] == 0.5
-    assert result["real_draw_share"] == 0.5 and "image_factors" not in result  # power 0: no render, every image at alpha
+    assert result["real_draw_share"] == 0.5 and "agreement" not in result  # power 0: no render, every image at alpha
     shared = run_pipeline(data, tmp_path / "shared", regime="views=2,lights=1", overrides=TRAIN,
                           config=replace(cfg, min_real_share=0.7), show_progress=False)
     assert shared["real_share"] == 0.5 and shared["real_draw_share"] == 0.75  # the real images drawn 3x as often

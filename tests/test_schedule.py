@@ -28,7 +28,7 @@ def test_demo_overrides_are_unchanged():
         assert (scaled["log_every"], scaled["checkpoint_every"]) == (n // 20, n // 2)
         assert scaled["opacity_reset_interval"] > n  # never reset in a short run
         assert scaled["lr_decay_step"] == 7 * n // 10  # the step decay at 70% of the run
-    assert short_schedule(1000, dense=True) == {**DEMO_OVERRIDES_1000, "batch_size": 2}
+    assert short_schedule(1000, dense=True) == {**DEMO_OVERRIDES_1000, "batch_size": 2, "sss_angular_inputs": True}
 
 
 def test_scale_schedule_rounds_down_keeps_zero_and_other_keys():

@@ -334,6 +334,30 @@ def test_sss_mlp_shapes_ranges_and_batching():
         mlp(**dict(inputs, quats=torch.zeros(50, 3)))
 
 
+def test_sss_mlp_angular_inputs_are_the_three_cosines():
+    torch.manual_seed(0)
+    mlp = SSSResidualMLP(SSSMLPConfig(angular_inputs=True))
+    assert mlp.input_dim == 48
+    inputs = mlp_inputs((3,), 40)
+    angular = slice(45, 48)
+    with torch.no_grad():  # only the cosines reach the trunk
+        first = mlp.trunk[0].weight
+        first[:, : angular.start] = 0.0
+    rotation = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(1)))[0]
+    rotated = dict(inputs, **{k: inputs[k] @ rotation.T for k in ("view_dirs", "light_dirs", "normals")})
+    moved = dict(rotated, positions=inputs["positions"] + 0.3, light_distance=inputs["light_distance"] * 2.0)
+    # a rigid rotation of normal, view and light (and any other input) leaves n.l, n.v, v.l and the output alone
+    torch.testing.assert_close(mlp(**moved).residual, mlp(**inputs).residual)
+    swapped = dict(inputs, light_dirs=inputs["view_dirs"], view_dirs=inputs["light_dirs"])
+    assert not torch.allclose(mlp(**swapped).residual, mlp(**inputs).residual)  # n.l and n.v are told apart
+    seen = []
+    mlp.trunk[0].register_forward_pre_hook(lambda module, args: seen.append(args[0]))
+    mlp(**inputs)
+    n, v, l = (torch.nn.functional.normalize(inputs[k], dim=-1) for k in ("normals", "view_dirs", "light_dirs"))
+    cosines = torch.stack([(n * l).sum(-1), (n * v).sum(-1), (v * l).sum(-1)], -1)
+    torch.testing.assert_close(seen[0][..., angular], cosines)
+
+
 def test_sss_mlp_deterministic_init_and_gradients():
     torch.manual_seed(7)
     a = SSSResidualMLP(SSSMLPConfig(width=16))

@@ -37,9 +37,6 @@ class PipelineConfig:
     agreement_power: float = described(0.0, "generated images whose sRGB error against the preliminary "
                                             "reconstruction's render exceeds the median error have their weight "
                                             "multiplied by (median / error)^power (0: every image at alpha)")
-    novel_view_weight: float = described(1.0, "photometric weight factor of generated images at views the capture "
-                                              "lacks (novel views and their relit copies); their masks and the "
-                                              "multi-view losses keep full weight (0: silhouettes only)")
     min_real_share: float | None = described(None, "the real images are repeated in the final reconstruction's "
                                                    "training set until they make up at least this share of the "
                                                    "images drawn (0: each image once, as the paper; default: "

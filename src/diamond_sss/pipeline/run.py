@@ -12,8 +12,7 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
                 reconstruction;
 4. ``final``    the reconstruction on real images (photometric weight 1) and generated ones (weight
                 ``synthetic_weight``, times each image's agreement factor with the preliminary reconstruction
-                when ``agreement_power`` > 0, :mod:`~diamond_sss.pipeline.agreement`, and by ``novel_view_weight``
-                at views the regime lacks; masks and geometric losses at full
+                when ``agreement_power`` > 0, :mod:`~diamond_sss.pipeline.agreement`; geometric losses at full
                 weight; the initial hull carved with the generated views' masks too), with the multi-view losses;
 5. ``eval``     the test split (novel views under novel lights).
 
@@ -243,9 +242,6 @@ def _checked_config(config: PipelineConfig | None) -> PipelineConfig:
                          "every round is the same reconstruction")
     if not (math.isfinite(cfg.agreement_power) and cfg.agreement_power >= 0.0):
         raise ValueError(f"pipeline config 'agreement_power' must be a finite number >= 0, got {cfg.agreement_power}")
-    if not (math.isfinite(cfg.novel_view_weight) and cfg.novel_view_weight >= 0.0):
-        raise ValueError(f"pipeline config 'novel_view_weight' must be a finite number >= 0, got "
-                         f"{cfg.novel_view_weight}")
     return cfg
 
 
@@ -418,17 +414,11 @@ def final_sources(ctx: PipelineContext, generated: list[GeneratedImage],
     if generated:
         write_capture(ctx.out / "synthetic", "train", ctx.real, generated)
         synthetic = OLATDataset(ctx.out / "synthetic", "train", downscale=ctx.train_cfg.runtime.downscale)
-        factor_of = {(item.view, item.light): 1.0 for item in generated}
         if ctx.cfg.agreement_power > 0.0:
             prelim = load_scene(ctx.prelim_dir, resolve_device(ctx.train_cfg.runtime.device))[0]
             errors = render_errors(prelim, ctx.real, generated)
             factor_of = dict(zip(((item.view, item.light) for item in generated),
                                  agreement_factors(errors, ctx.cfg.agreement_power), strict=True))
-        if ctx.cfg.novel_view_weight != 1.0:
-            real_views = set(ctx.selection.views)
-            factor_of = {(view, light): factor * (1.0 if view in real_views else ctx.cfg.novel_view_weight)
-                         for (view, light), factor in factor_of.items()}
-        if ctx.cfg.agreement_power > 0.0 or ctx.cfg.novel_view_weight != 1.0:
             factors = [factor_of[obs.view, obs.light] for obs in synthetic.observations]
         extra = [ImageSource(ctx.real.subset(ctx.selection.observations), 1.0)] * copies + [
             ImageSource(synthetic, ctx.train_cfg.losses.synthetic_weight, tuple(factors) if factors else None)]
@@ -436,7 +426,7 @@ def final_sources(ctx: PipelineContext, generated: list[GeneratedImage],
               "real_share": round(num_real / (num_real + len(generated)), 4),
               "real_draw_share": round((1 + copies) * num_real / ((1 + copies) * num_real + len(generated)), 4)}
     if factors:
-        counts["image_factors"] = {"mean_factor": round(sum(factors) / len(factors), 4),
+        counts["agreement"] = {"mean_factor": round(sum(factors) / len(factors), 4),
                                "min_factor": round(min(factors), 4),
                                "down_weighted": sum(factor < 1.0 for factor in factors)}
     return extra, counts

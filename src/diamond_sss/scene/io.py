@@ -22,6 +22,7 @@ class SceneSettings(Protocol):
     light_init: float
     mixed_precision: bool
     light_falloff: str
+    sss_angular_inputs: bool
 
 
 def scene_tensors(scene: RelightableScene) -> dict[str, Tensor]:
@@ -35,7 +36,8 @@ def scene_from_tensors(tensors: dict[str, Tensor], cfg: SceneSettings) -> Religh
     model = GaussianModel.from_state_tensors({k[len(prefix):]: v for k, v in tensors.items()
                                               if k.startswith(prefix)})
     scene = RelightableScene(model, sss_width=cfg.sss_width, light_init=cfg.light_init,
-                             mixed_precision=cfg.mixed_precision, light_falloff=cfg.light_falloff)
+                             mixed_precision=cfg.mixed_precision, light_falloff=cfg.light_falloff,
+                             sss_angular_inputs=cfg.sss_angular_inputs)
     scene.load_state_dict(tensors)
     return scene
 

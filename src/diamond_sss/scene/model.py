@@ -46,12 +46,12 @@ class RelightableScene(nn.Module):
 
     def __init__(self, gaussians: GaussianModel, sss_width: int = 32, light_init: float = -1.0,
                  scene_center: Tensor | None = None, scene_radius: float = 1.0,
-                 mixed_precision: bool = False, light_falloff: str = "none") -> None:
+                 mixed_precision: bool = False, light_falloff: str = "none", sss_angular_inputs: bool = False) -> None:
         super().__init__()
         if light_falloff not in LIGHT_FALLOFFS:
             raise ValueError(f"light_falloff must be one of {LIGHT_FALLOFFS}, got {light_falloff!r}")
         self.gaussians = gaussians
-        self.mlp = SSSResidualMLP(SSSMLPConfig(width=sss_width))
+        self.mlp = SSSResidualMLP(SSSMLPConfig(width=sss_width, angular_inputs=sss_angular_inputs))
         self.log_light_scale = nn.Parameter(torch.tensor(float(light_init)))
         self.register_buffer("scene_center", torch.zeros(3) if scene_center is None else scene_center.float().clone())
         self.register_buffer("scene_radius", torch.tensor(float(scene_radius)))

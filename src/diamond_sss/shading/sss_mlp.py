@@ -64,7 +64,9 @@ class SSSMLPConfig:
     """Architecture of :class:`SSSResidualMLP`.
 
     ``incident_bias_init`` is the initial bias of the ``L_in`` output so that the incident light starts
-    near 1 (unoccluded, the ReLU active) instead of at a dead zero.
+    near 1 (unoccluded, the ReLU active) instead of at a dead zero. ``angular_inputs`` appends the cosines
+    ``n.w_l``, ``n.w_v`` and ``w_v.w_l`` to the inputs, so that a dependence on the light's angle to the surface is
+    one function for every Gaussian instead of one learnt per position from the training lights.
     """
 
     width: int = 32
@@ -72,6 +74,7 @@ class SSSMLPConfig:
     num_freqs: int = 4
     negative_slope: float = 0.01
     incident_bias_init: float = 1.0
+    angular_inputs: bool = False
 
 
 @dataclass
@@ -118,8 +121,8 @@ class SSSResidualMLP(nn.Module):
 
     @property
     def input_dim(self) -> int:
-        """Width of the concatenated input: ``3 (1 + 2F)`` position + 4 + 3 + 3 + 3 + 3 + 1 + 1."""
-        return 3 * (1 + 2 * self.config.num_freqs) + 4 + 3 + 3 + 3 + 3 + 1 + 1
+        """Width of the concatenated input: ``3 (1 + 2F)`` position + 4 + 3 + 3 + 3 + 3 + 1 + 1 (+ 3 cosines)."""
+        return 3 * (1 + 2 * self.config.num_freqs) + 4 + 3 + 3 + 3 + 3 + 1 + 1 + 3 * self.config.angular_inputs
 
     def forward(
         self,
@@ -148,16 +151,20 @@ class SSSResidualMLP(nn.Module):
                     f"{name} must have shape [N, {channels}] or [B, N, {channels}], got {tuple(tensor.shape)}"
                 )
         lead = torch.broadcast_shapes(*(tensor.shape[:-1] for tensor, _ in inputs.values()))
+        view, light, normal = (F.normalize(v, dim=-1) for v in (view_dirs, light_dirs, normals))
         features = [
             positional_encoding(positions, self.config.num_freqs),
             F.normalize(quats, dim=-1),
             scales,
-            F.normalize(view_dirs, dim=-1),
-            F.normalize(light_dirs, dim=-1),
-            F.normalize(normals, dim=-1),
+            view,
+            light,
+            normal,
             visibility,
             light_distance,
         ]
+        if self.config.angular_inputs:
+            normal, view, light = torch.broadcast_tensors(normal, view, light)
+            features.append(torch.stack([(normal * light).sum(-1), (normal * view).sum(-1), (view * light).sum(-1)], -1))
         x = torch.cat([f.expand(*lead, f.shape[-1]) for f in features], dim=-1)
         hidden = self.trunk(x)
         return SSSOutput(

@@ -110,6 +110,8 @@ class Shading:
     light_init_from_data: bool = _key(True, "calibrate the initial light scale from the images")
     random_background: bool = _key(False, "train on random background colours")
     mixed_precision: bool = _key(True, "bfloat16 autocast of the subsurface-scattering MLP on CUDA")
+    sss_angular_inputs: bool = _key(False, "also feed the MLP the cosines n.l, n.v and v.l (an angular prior shared "
+                                    "by every Gaussian)")
     light_falloff: str = _key("none", "point-light falloff in the shading: none (as SSS-3DGS: the MLP learns it "
                               "from the light distance) | inverse_square (relative to the scene centre)")
 
@@ -280,11 +282,13 @@ incident light is not tied to the SH visibility, which ~10 ray-traced updates pe
 initial value (the tie then forbids shadows: +0.5 dB), and the step decay multiplies the rates by 0.3, not 0.1
 (+0.3 / +0.4 dB over no decay on two seeds; 0.1: +0.05 dB)."""
 
-DENSE_CPU_BUDGET: dict[str, int] = {"batch_size": 2}
+DENSE_SHORT_RUN: dict[str, Any] = {"batch_size": 2, "sss_angular_inputs": True}
 """A short run over a dense capture (the demo object's 960 images: at batch 1, 1000 steps draw each image about
-once) draws 2 images per step: +0.7 / +1.2 dB on two seeds for 1.3x the time. Sparse runs keep batch 1: their
-few images are each drawn 100 times or more, and batch 2 cost 0.4 and 1.2 dB
-in the demo's 9-image rows (benchmarks/RESULTS.md, issue 17)."""
+once) draws 2 images per step: +0.7 / +1.2 dB on two seeds for 1.3x the time; and its MLP sees the cosines n.l, n.v,
+v.l: +0.84 / +0.26 / +0.23 dB on three seeds, all of it under novel lights. Sparse runs keep batch 1 (their few
+images are each drawn 100 times or more; batch 2 cost 0.4 and 1.2 dB in the demo's 9-image rows) and the plain MLP
+inputs (with the cosines the 9-image SSS-3DGS rows gain 0.3-0.7 dB but the full pipeline loses 0.6-0.7 dB: bunny,
+torus) (benchmarks/RESULTS.md, issue 17)."""
 
 
 SCHEDULE_FLOORS: dict[str, int] = {"densify.refine_every": 10, "densify.reset_every": 200}
@@ -322,7 +326,7 @@ def schedule_for(values: Mapping[str, Any], iterations: int) -> dict[str, Any]:
 
 def short_schedule(iterations: int, dense: bool = False) -> dict[str, Any]:
     """Overrides for a reconstruction of ``iterations`` steps at 64x64 on a CPU: :data:`SHORT_SCHEDULE`
-    scaled to ``iterations``, with :data:`CPU_BUDGET` (and :data:`DENSE_CPU_BUDGET` for a ``dense`` capture)
+    scaled to ``iterations``, with :data:`CPU_BUDGET` (and :data:`DENSE_SHORT_RUN` for a ``dense`` capture)
     and :data:`SHORT_RUN_MODEL`."""
-    budget = {**CPU_BUDGET, **DENSE_CPU_BUDGET} if dense else CPU_BUDGET
+    budget = {**CPU_BUDGET, **DENSE_SHORT_RUN} if dense else CPU_BUDGET
     return {**schedule_for(SHORT_SCHEDULE, iterations), **budget, **SHORT_RUN_MODEL}

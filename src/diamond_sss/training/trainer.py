@@ -184,7 +184,8 @@ class Trainer:
         return RelightableScene(model, sss_width=shading.sss_width, light_init=light_init,
                                 scene_center=self.bounds.center, scene_radius=self.bounds.radius,
                                 mixed_precision=shading.mixed_precision,
-                                light_falloff=shading.light_falloff).to(self.device)
+                                light_falloff=shading.light_falloff,
+                                sss_angular_inputs=shading.sss_angular_inputs).to(self.device)
 
     def calibrated_light_init(self, max_images: int = 64) -> float:
         """``log`` of a global light scale matched to the capture's units (Tab. 3's ``light_init`` = -1 is
