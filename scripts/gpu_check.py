@@ -11,6 +11,8 @@ Writes ``report.json`` and ``report.md`` (plus each step's log) under ``--out``.
 
     python scripts/gpu_check.py --out gpu_check            # ~10-15 min on an H100
     python scripts/gpu_check.py --skip suite --iterations 1000
+    python scripts/gpu_check.py --skip cuda-tests suite speed speed-raster --iterations 10000 \
+        --set lr.decay_step=7000 --set lr.decay_factor=0.3 --set sss_angular_inputs=true   # issue 17's 10k run
 """
 
 from __future__ import annotations
@@ -98,6 +100,8 @@ def main() -> None:
     parser.add_argument("--skip", nargs="*", default=[], choices=STEPS, help="steps to leave out")
     parser.add_argument("--iterations", type=int, default=3000, help="steps of the demo-object reconstruction")
     parser.add_argument("--timeout", type=int, default=1800, help="seconds per step at most")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="config key of the demo-object reconstruction, as `diamond-sss train --set` (repeatable)")
     args = parser.parse_args()
     import torch
 
@@ -127,7 +131,8 @@ def main() -> None:
         "speed-raster": [python, "benchmarks/speed_raster.py", "--resolutions", "64", "--counts", "10000",
                          "--output", str(out / "speed_raster.json")],
         "train": cli + ["train", "--data", str(demo), "--out", str(run_dir), "--preset", "diamond",
-                        "--iterations", str(args.iterations), "--device", "cuda", "--quiet"],
+                        "--iterations", str(args.iterations), "--device", "cuda", "--quiet",
+                        *(f"--set={item}" for item in args.set)],
         "eval": cli + ["eval", "--run", str(run_dir), "--data", str(demo), "--split", "test", "--json",
                        "--device", "cuda"],
     }
