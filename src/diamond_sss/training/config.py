@@ -287,8 +287,8 @@ DENSE_SHORT_RUN: dict[str, Any] = {"batch_size": 2, "sss_angular_inputs": True}
 once) draws 2 images per step: +0.7 / +1.2 dB on two seeds for 1.3x the time; and its MLP sees the cosines n.l, n.v,
 v.l: +0.84 / +0.26 / +0.23 dB on three seeds, all of it under novel lights. Sparse runs keep batch 1 (their few
 images are each drawn 100 times or more; batch 2 cost 0.4 and 1.2 dB in the demo's 9-image rows) and the plain MLP
-inputs (with the cosines the 9-image SSS-3DGS rows gain 0.3-0.7 dB but the full pipeline loses 0.6-0.7 dB: bunny,
-torus) (benchmarks/RESULTS.md, issue 17)."""
+inputs (with the cosines the 9-image SSS-3DGS rows gain 0.7-0.8 dB but the full pipeline loses 0.55-0.66 dB: bunny,
+torus) (benchmarks/RESULTS.md, issues 17 and 18)."""
 
 
 SCHEDULE_FLOORS: dict[str, int] = {"densify.refine_every": 10, "densify.reset_every": 200}
