@@ -62,15 +62,20 @@ def settings_hash(preset: str, overrides: dict) -> str:
 def noise_reference(data: Path, reference: Path | None, render: bool, cross_splits: bool, runs: Path) -> Path | None:
     """The folder of ``data``'s test split rendered again with independent noise (and, with ``cross_splits``, the
     ``novel_view`` / ``novel_light`` splits when ``data`` lacks them), rendering it first when asked."""
-    if reference is None and (render or cross_splits):
-        from diamond_sss.synth.render import noise_reference_config, synthesize
+    if reference is not None or not (render or cross_splits):
+        return reference
+    from diamond_sss.data.errors import DataError
+    from diamond_sss.synth.render import noise_reference_config, synthesize
 
-        reference = runs / "noise_reference" / data.name
-        needs_cross = cross_splits and not all((folder / f"transforms_{split}.json").is_file()
-                                               for folder in (data, reference) for split in CROSS_SPLITS)
-        if needs_cross or not (reference / "transforms_test.json").is_file():
+    reference = runs / "noise_reference" / data.name
+    needs_cross = cross_splits and not any(all((folder / f"transforms_{split}.json").is_file() for split in CROSS_SPLITS)
+                                           for folder in (data, reference))
+    if needs_cross or (render and not (reference / "transforms_test.json").is_file()):
+        try:
             synthesize(noise_reference_config(data, reference, cross_splits=needs_cross))
-    return reference
+        except DataError as exc:
+            raise SystemExit(f"--render-noise-reference / --cross-splits: {exc}") from exc
+    return reference if (reference / "transforms_test.json").is_file() else None
 
 
 def cross_split_folder(data: Path, reference: Path | None) -> Path:
