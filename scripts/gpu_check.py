@@ -12,7 +12,8 @@ Writes ``report.json`` and ``report.md`` (plus each step's log) under ``--out``.
     python scripts/gpu_check.py --out gpu_check            # ~10-15 min on an H100
     python scripts/gpu_check.py --skip suite --iterations 1000
     python scripts/gpu_check.py --skip cuda-tests suite speed speed-raster --iterations 10000 \
-        --set lr.decay_step=7000 --set lr.decay_factor=0.3 --set sss_angular_inputs=true   # issue 17's 10k run
+        --set lr.decay_step=7000 --set lr.decay_factor=0.3 --set sss_angular_inputs=true \
+        --set sss_light_depth=48   # issue 17's 10k run
 """
 
 from __future__ import annotations

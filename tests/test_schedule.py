@@ -16,7 +16,7 @@ DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, 
     "max_gaussians": 8000, "densify_from_iter": 250, "densify_until_iter": 850, "densification_interval": 125,
     "opacity_reset_interval": 10001, "mv_pairs_per_step": 1, "mv_pixels_per_pair": 256, "raytrace_gaussians": 512,
     "log_every": 50, "checkpoint_every": 500, "sss_lr": 0.005, "sss_width": 64, "lambda_incident_light": 0.0,
-    "lr_decay_step": 700, "lr_decay_factor": 0.3,
+    "lr_decay_step": 700, "lr_decay_factor": 0.3, "sss_light_depth": 48,
 }
 
 

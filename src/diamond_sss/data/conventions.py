@@ -46,28 +46,22 @@ def opencv_w2c_to_opengl_c2w(w2c: Tensor) -> Tensor:
 
 
 def look_at_opengl_c2w(eye: Tensor, target: Tensor, up: Tensor | None = None) -> Tensor:
-    """OpenGL camera-to-world matrix of a camera at ``eye`` looking at ``target``. ``[3] -> [4,4]``.
+    """OpenGL camera-to-world matrices of cameras at ``eye`` looking at ``target``. ``[..., 3] -> [..., 4, 4]``.
 
-    ``up`` defaults to world +Z; when the viewing direction is (anti)parallel to it, +Y is used.
+    float64, on ``eye``'s device; ``target`` (and ``up``) broadcast against ``eye``. ``up`` defaults to world +Z;
+    for a camera whose viewing direction is (anti)parallel to it, +Y is used.
     """
     eye = eye.to(torch.float64)
-    target = target.to(torch.float64)
-    forward = target - eye
-    forward = forward / forward.norm()
+    forward = F.normalize(target.to(eye) - eye, dim=-1)
     if up is None:
-        up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-        if abs(float(forward @ up)) > 0.999:
-            up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
-    up = up.to(torch.float64)
-    right = torch.linalg.cross(forward, up)
-    right = right / right.norm()
+        world_z, world_y = eye.new_tensor([0.0, 0.0, 1.0]), eye.new_tensor([0.0, 1.0, 0.0])
+        up = torch.where((forward @ world_z).abs().unsqueeze(-1) > 0.999, world_y, world_z)
+    up = up.to(eye).expand_as(forward)
+    right = F.normalize(torch.linalg.cross(forward, up), dim=-1)
     true_up = torch.linalg.cross(right, forward)
-    c2w = torch.eye(4, dtype=torch.float64)
-    c2w[:3, 0] = right
-    c2w[:3, 1] = true_up
-    c2w[:3, 2] = -forward
-    c2w[:3, 3] = eye
-    return c2w
+    bottom = eye.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(*forward.shape[:-1], 1, 4)
+    top = torch.stack([right, true_up, -forward, eye.expand_as(forward)], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
 
 
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> Tensor:

@@ -3,7 +3,8 @@
 Per image ``b`` (a camera and a point light) and Gaussian ``i``:
 
 1. ``w_v = normalize(c_b - mu_i)``, ``w_l = normalize(p_b - mu_i)``, ``d = |p_b - mu_i|``;
-   ``V_SH = clamp(SH_i(w_l) + 0.5, 0, 1)``.
+   ``V_SH = clamp(SH_i(w_l) + 0.5, 0, 1)``; with ``sss_light_depth = S > 0`` also ``t_i``, the depth below the
+   lit surface from an ``S x S`` depth map rendered at the light (:mod:`diamond_sss.shading.light_depth`).
 2. The SSS MLP gives the residual radiance ``R_i`` and the incident light ``L_in,i``.
 3. The G-buffer (normal, base colour, roughness, metallic, s, V_SH, L_in, R) is alpha-blended with the
    Gaussians' per-image features, with expected depth and alpha.
@@ -21,6 +22,7 @@ from diamond_sss.data.conventions import camera_centers
 from diamond_sss.gaussians.model import GaussianModel
 from diamond_sss.rendering.rasterize import RasterOutput, rasterize
 from diamond_sss.shading.deferred import LIGHT_FALLOFFS, GBuffer, ShadingResult, deferred_shade
+from diamond_sss.shading.light_depth import depth_below_surface, light_cameras
 from diamond_sss.shading.sh import visibility_from_sh
 from diamond_sss.shading.sss_mlp import SSSMLPConfig, SSSResidualMLP, light_geometry
 
@@ -46,12 +48,17 @@ class RelightableScene(nn.Module):
 
     def __init__(self, gaussians: GaussianModel, sss_width: int = 32, light_init: float = -1.0,
                  scene_center: Tensor | None = None, scene_radius: float = 1.0,
-                 mixed_precision: bool = False, light_falloff: str = "none", sss_angular_inputs: bool = False) -> None:
+                 mixed_precision: bool = False, light_falloff: str = "none", sss_angular_inputs: bool = False,
+                 sss_light_depth: int = 0) -> None:
         super().__init__()
         if light_falloff not in LIGHT_FALLOFFS:
             raise ValueError(f"light_falloff must be one of {LIGHT_FALLOFFS}, got {light_falloff!r}")
+        if sss_light_depth < 0:
+            raise ValueError(f"sss_light_depth is a depth map side in px (0: off), got {sss_light_depth}")
         self.gaussians = gaussians
-        self.mlp = SSSResidualMLP(SSSMLPConfig(width=sss_width, angular_inputs=sss_angular_inputs))
+        self.mlp = SSSResidualMLP(SSSMLPConfig(width=sss_width, angular_inputs=sss_angular_inputs,
+                                               light_depth_input=sss_light_depth > 0))
+        self.light_depth_size = sss_light_depth
         self.log_light_scale = nn.Parameter(torch.tensor(float(light_init)))
         self.register_buffer("scene_center", torch.zeros(3) if scene_center is None else scene_center.float().clone())
         self.register_buffer("scene_radius", torch.tensor(float(scene_radius)))
@@ -77,11 +84,12 @@ class RelightableScene(nn.Module):
         visibility = visibility_from_sh(g.visibility_sh, geometry.light_dirs).unsqueeze(-1)
         normals = g.normals
         radius = self.scene_radius
+        light_depth = self.light_depth(light_positions) / radius if self.light_depth_size else None
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.mixed_precision and means.is_cuda):
             sss = self.mlp(((means - self.scene_center) / radius).expand(batch, num, 3),
                            g.quats.expand(batch, num, 4), (g.scales / radius).expand(batch, num, 3),
                            geometry.view_dirs, geometry.light_dirs, normals.expand(batch, num, 3), visibility,
-                           geometry.light_distance / radius)
+                           geometry.light_distance / radius, light_depth)
         materials = {"base_color": g.base_color, "roughness": g.roughness, "metallic": g.metallic,
                      "subsurface": g.subsurface}
         for name, value in (overrides or {}).items():
@@ -93,6 +101,16 @@ class RelightableScene(nn.Module):
                                   materials["subsurface"]], dim=-1)
         return torch.cat([per_gaussian.expand(batch, num, per_gaussian.shape[-1]), visibility,
                           sss.incident.float(), sss.residual.float()], dim=-1)
+
+    @torch.no_grad()
+    def light_depth(self, light_positions: Tensor) -> Tensor:
+        """Each Gaussian centre's depth below the surface lit by each light ``[B, N, 1]`` (scene units), from a
+        ``light_depth_size``-px depth map rendered at the light (a geometric cue: no gradient)."""
+        g = self.gaussians
+        size = self.light_depth_size
+        w2c, K = light_cameras(light_positions, self.scene_center, self.scene_radius, size)
+        raster = self.render_geometry(w2c, K, size, size)
+        return depth_below_surface(g.means, w2c, K, raster.depth, raster.alpha)
 
     def render(self, viewmats: Tensor, Ks: Tensor, width: int, height: int, light_positions: Tensor,
                light_intensities: Tensor, *, overrides: dict[str, float | Tensor] | None = None,

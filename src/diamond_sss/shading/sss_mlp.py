@@ -67,6 +67,8 @@ class SSSMLPConfig:
     near 1 (unoccluded, the ReLU active) instead of at a dead zero. ``angular_inputs`` appends the cosines
     ``n.w_l``, ``n.w_v`` and ``w_v.w_l`` to the inputs, so that a dependence on the light's angle to the surface is
     one function for every Gaussian instead of one learnt per position from the training lights.
+    ``light_depth_input`` appends the depth below the lit surface along the light ray (scene radii; see
+    :mod:`diamond_sss.shading.light_depth`), which the caller computes from the geometry for each light.
     """
 
     width: int = 32
@@ -75,6 +77,7 @@ class SSSMLPConfig:
     negative_slope: float = 0.01
     incident_bias_init: float = 1.0
     angular_inputs: bool = False
+    light_depth_input: bool = False
 
 
 @dataclass
@@ -98,7 +101,8 @@ class SSSResidualMLP(nn.Module):
     ``num_freqs`` frequencies plus the raw value), ``quats [..., 4]`` (normalised here), ``scales [..., 3]``
     (activated, i.e. ``exp(log_scale)``), ``view_dirs``/``light_dirs``/``normals [..., 3]`` (normalised
     here), ``visibility [..., 1]`` (towards the light, in ``[0, 1]``), ``light_distance [..., 1]`` (scene
-    units). Heads: ``R = sigmoid(W h)`` (RGB) and ``L_in = relu(W' leaky(W'' h))`` (one channel).
+    units), ``light_depth [..., 1]`` (scene radii; required with ``light_depth_input``, else ignored).
+    Heads: ``R = sigmoid(W h)`` (RGB) and ``L_in = relu(W' leaky(W'' h))`` (one channel).
     """
 
     def __init__(self, config: SSSMLPConfig | None = None) -> None:
@@ -121,8 +125,11 @@ class SSSResidualMLP(nn.Module):
 
     @property
     def input_dim(self) -> int:
-        """Width of the concatenated input: ``3 (1 + 2F)`` position + 4 + 3 + 3 + 3 + 3 + 1 + 1 (+ 3 cosines)."""
-        return 3 * (1 + 2 * self.config.num_freqs) + 4 + 3 + 3 + 3 + 3 + 1 + 1 + 3 * self.config.angular_inputs
+        """Width of the concatenated input: ``3 (1 + 2F)`` position + 4 + 3 + 3 + 3 + 3 + 1 + 1 (+ 3 cosines)
+        (+ 1 depth below the lit surface)."""
+        cfg = self.config
+        angular, depth = 3 * cfg.angular_inputs, int(cfg.light_depth_input)
+        return 3 * (1 + 2 * cfg.num_freqs) + 4 + 3 + 3 + 3 + 3 + 1 + 1 + angular + depth
 
     def forward(
         self,
@@ -134,7 +141,10 @@ class SSSResidualMLP(nn.Module):
         normals: Tensor,
         visibility: Tensor,
         light_distance: Tensor,
+        light_depth: Tensor | None = None,
     ) -> SSSOutput:
+        if self.config.light_depth_input and light_depth is None:
+            raise ValueError("this MLP was built with light_depth_input=True and needs light_depth [..., 1]")
         inputs = {
             "positions": (positions, 3),
             "quats": (quats, 4),
@@ -145,6 +155,8 @@ class SSSResidualMLP(nn.Module):
             "visibility": (visibility, 1),
             "light_distance": (light_distance, 1),
         }
+        if self.config.light_depth_input:
+            inputs["light_depth"] = (light_depth, 1)
         for name, (tensor, channels) in inputs.items():
             if tensor.shape[-1] != channels or tensor.dim() not in (2, 3):
                 raise ValueError(
@@ -165,6 +177,8 @@ class SSSResidualMLP(nn.Module):
         if self.config.angular_inputs:
             normal, view, light = torch.broadcast_tensors(normal, view, light)
             features.append(torch.stack([(normal * light).sum(-1), (normal * view).sum(-1), (view * light).sum(-1)], -1))
+        if self.config.light_depth_input:
+            features.append(light_depth)
         x = torch.cat([f.expand(*lead, f.shape[-1]) for f in features], dim=-1)
         hidden = self.trunk(x)
         return SSSOutput(

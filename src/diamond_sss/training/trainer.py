@@ -185,7 +185,8 @@ class Trainer:
                                 scene_center=self.bounds.center, scene_radius=self.bounds.radius,
                                 mixed_precision=shading.mixed_precision,
                                 light_falloff=shading.light_falloff,
-                                sss_angular_inputs=shading.sss_angular_inputs).to(self.device)
+                                sss_angular_inputs=shading.sss_angular_inputs,
+                                sss_light_depth=shading.sss_light_depth).to(self.device)
 
     def calibrated_light_init(self, max_images: int = 64) -> float:
         """``log`` of a global light scale matched to the capture's units (Tab. 3's ``light_init`` = -1 is
