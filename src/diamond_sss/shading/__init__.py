@@ -1,4 +1,4 @@
-"""Deferred SSS shading: SH visibility, GGX BRDF, residual MLP, deferred shading, ray-traced visibility."""
+"""Deferred SSS shading: SH visibility, GGX BRDF, residual MLP, deferred shading, ray-traced visibility, light depth."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from diamond_sss.shading.ggx import (
     pbr_shade,
     smith_g1,
 )
+from diamond_sss.shading.light_depth import depth_below_surface, light_cameras
 from diamond_sss.shading.raytrace import (
     VisibilitySamples,
     gaussian_transmittance,
@@ -48,11 +49,13 @@ __all__ = [
     "VisibilitySamples",
     "backproject_depth",
     "deferred_shade",
+    "depth_below_surface",
     "eval_sh",
     "fresnel_schlick_ue4",
     "gaussian_transmittance",
     "geometry_smith",
     "ggx_distribution",
+    "light_cameras",
     "light_geometry",
     "light_sh_encoding",
     "num_sh_bases",
