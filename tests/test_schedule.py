@@ -16,7 +16,7 @@ DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, 
     "max_gaussians": 8000, "densify_from_iter": 250, "densify_until_iter": 850, "densification_interval": 125,
     "opacity_reset_interval": 10001, "mv_pairs_per_step": 1, "mv_pixels_per_pair": 256, "raytrace_gaussians": 512,
     "log_every": 50, "checkpoint_every": 500, "sss_lr": 0.005, "sss_width": 64, "lambda_incident_light": 0.0,
-    "lr_decay_step": 700, "lr_decay_factor": 0.3, "sss_light_depth": 48,
+    "lr_decay_step": 700, "lr_decay_factor": 0.3, "sss_light_depth": 48, "sss_lr_warmup_steps": 100,
 }
 
 
@@ -28,6 +28,7 @@ def test_demo_overrides_are_unchanged():
         assert (scaled["log_every"], scaled["checkpoint_every"]) == (n // 20, n // 2)
         assert scaled["opacity_reset_interval"] > n  # never reset in a short run
         assert scaled["lr_decay_step"] == 7 * n // 10  # the step decay at 70% of the run
+        assert scaled["sss_lr_warmup_steps"] == n // 10  # the MLP's warm-up over the first 10%
     assert short_schedule(1000, dense=True) == {**DEMO_OVERRIDES_1000, "batch_size": 2, "sss_angular_inputs": True}
 
 

@@ -19,7 +19,7 @@ from diamond_sss.training.checkpoint import optimizer_from_tensors, optimizer_to
 from diamond_sss.training.config import PRESETS, TrainConfig
 from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run_folder import load_scene
-from diamond_sss.training.schedules import exponential_lr, step_decay
+from diamond_sss.training.schedules import exponential_lr, linear_warmup, step_decay
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.utils.io import load_safetensors
 
@@ -96,6 +96,8 @@ def test_exponential_lr_schedule():
     assert exponential_lr(10, 1e-2, 1e-4, 100, delay_steps=10, delay_mult=0.01) == pytest.approx(
         math.exp(0.9 * math.log(1e-2) + 0.1 * math.log(1e-4)))
     assert (step_decay(49_999, 50_000, 0.1), step_decay(50_000, 50_000, 0.1)) == (1.0, 0.1)
+    assert [linear_warmup(step, 4) for step in range(6)] == [0.25, 0.5, 0.75, 1.0, 1.0, 1.0]
+    assert linear_warmup(0, 0) == 1.0
 
 
 def test_optimizer_state_round_trip():
@@ -278,3 +280,16 @@ def test_unified_lattice_maps_shared_and_new_cameras(capture, tmp_path):
     trainer = Trainer(cfg, [ImageSource(real), ImageSource(new, 0.5)], tmp_path / "run", show_progress=False)
     trainer.run()
     assert set(trainer.view_silhouettes) == set(range(8))
+
+
+def test_the_mlp_learning_rate_warms_up_then_decays(capture, tmp_path):
+    cfg = make_config("diamond", overrides={**TINY, "sss_lr": 0.004, "sss_lr_warmup_steps": 4, "lr_decay_step": 8,
+                                            "lr_decay_factor": 0.5, "densify": False})
+    trainer = Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False)
+    optimizers = trainer.build_optimizers(trainer.build_scene())
+    rates = []
+    for step in (0, 1, 3, 7, 8):
+        trainer.set_learning_rates(optimizers, step)
+        rates.append(optimizers["mlp"].param_groups[0]["lr"])
+    assert rates == pytest.approx([0.001, 0.002, 0.004, 0.004, 0.002])
+    assert optimizers["light"].param_groups[0]["lr"] == pytest.approx(0.5 * cfg.lr.light)  # not warmed up

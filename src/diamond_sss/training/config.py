@@ -64,6 +64,8 @@ class LearningRates:
     subsurfacedness: float = _key(0.01, "learning rate of the subsurfaceness", "subsurfacedness_lr")
     visibility: float = _key(0.0025, "learning rate of the visibility SH coefficients", "visibility_lr")
     sss: float = _key(0.001, "learning rate of the subsurface-scattering MLP", "sss_lr")
+    sss_warmup_steps: int = _key(0, "steps of a linear warm-up of the MLP's learning rate from 0",
+                                 "sss_lr_warmup_steps")
     light: float = _key(0.001, "learning rate of the log light scale", "light_lr")
     decay_step: int = _key(50_000, "step from which every learning rate is multiplied by lr.decay_factor (once)",
                            "lr_decay_step")
@@ -257,7 +259,7 @@ def canonical_key(key: str) -> str:
     raise ValueError(f"unknown config key '{key}'" + (f"; similar keys: {close}" if close else ""))
 
 
-SCHEDULE_KEYS = ("lr.position_delay_steps", "lr.position_max_steps", "lr.decay_step",
+SCHEDULE_KEYS = ("lr.position_delay_steps", "lr.position_max_steps", "lr.decay_step", "lr.sss_warmup_steps",
                  "densify.refine_start_iter", "densify.refine_stop_iter", "densify.refine_every",
                  "densify.reset_every", "runtime.checkpoint_every", "runtime.log_every", "runtime.image_log_every")
 """Step-valued keys: a run of another length scales them with :func:`scale_schedule`."""
@@ -265,12 +267,15 @@ SCHEDULE_KEYS = ("lr.position_delay_steps", "lr.position_max_steps", "lr.decay_s
 SHORT_SCHEDULE: dict[str, int] = {
     "iterations": 1000, "position_lr_max_steps": 1000, "densify_from_iter": 250, "densify_until_iter": 850,
     "densification_interval": 125, "opacity_reset_interval": 10_001, "log_every": 50, "checkpoint_every": 500,
-    "lr_decay_step": 700,
+    "lr_decay_step": 700, "sss_lr_warmup_steps": 100,
 }
 """Tab. 3's schedule compressed for a run of a few hundred steps (demo, benchmarks), at 1000 steps:
 densification from 25% to 85% of the run every 12.5%, no opacity reset (too short for the Gaussians to
-recover), the position learning rate decaying over the run, and the step decay of every learning rate at 70%
-of the run (the paper's is at 50k of 80-100k steps; the preset's 50k is never reached by a 10k-step run)."""
+recover), the position learning rate decaying over the run, the step decay of every learning rate at 70%
+of the run (the paper's is at 50k of 80-100k steps; the preset's 50k is never reached by a 10k-step run), and
+the MLP's (5x Tab. 3's, :data:`SHORT_RUN_MODEL`) warmed up over the first 10%: at the full rate from the first
+step, Adam can drive every weight the same way while the image is too bright, until the residual's sigmoid and the
+incident light's ReLU saturate at 0 for every input and the render stays black (seen on a 30-image pipeline run)."""
 
 CPU_BUDGET: dict[str, int] = {"batch_size": 1, "num_gaussians": 3_000, "max_gaussians": 8_000,
                               "mv_pairs_per_step": 1, "mv_pixels_per_pair": 256, "raytrace_gaussians": 512}

@@ -26,3 +26,8 @@ def exponential_lr(step: int, lr_init: float, lr_final: float, max_steps: int, d
 def step_decay(step: int, decay_step: int, factor: float) -> float:
     """Multiplier ``factor`` from ``decay_step`` on, 1 before (supplement A.1: x0.1 after 50k steps)."""
     return factor if step >= decay_step else 1.0
+
+
+def linear_warmup(step: int, warmup_steps: int) -> float:
+    """Multiplier ``min(1, (t + 1) / warmup_steps)`` of a learning rate warmed up over ``warmup_steps`` (1 if 0)."""
+    return 1.0 if warmup_steps <= 0 else min(1.0, (step + 1) / warmup_steps)

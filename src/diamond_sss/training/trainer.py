@@ -42,7 +42,7 @@ from diamond_sss.training.lattice import unify_lattices
 from diamond_sss.training.loss_log import LossLog
 from diamond_sss.training.objective import TargetBatch, image_objective
 from diamond_sss.training.run_folder import check_resumable, finished_summary
-from diamond_sss.training.schedules import exponential_lr, step_decay
+from diamond_sss.training.schedules import exponential_lr, linear_warmup, step_decay
 from diamond_sss.utils import rng
 from diamond_sss.utils.device import resolve_device
 from diamond_sss.utils.io import atomic_write_json
@@ -230,7 +230,7 @@ class Trainer:
         rates["means"] = self.bounds.radius * exponential_lr(
             step, cfg.lr.position_init, cfg.lr.position_final, cfg.lr.position_max_steps,
             cfg.lr.position_delay_steps, cfg.lr.position_delay_mult)
-        rates["mlp"] = cfg.lr.sss * decay
+        rates["mlp"] = cfg.lr.sss * decay * linear_warmup(step, cfg.lr.sss_warmup_steps)
         rates["light"] = cfg.lr.light * decay
         for name, optimizer in optimizers.items():
             for group in optimizer.param_groups:
