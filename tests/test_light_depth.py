@@ -86,6 +86,9 @@ def test_light_depth_is_a_checked_config_key_off_by_default():
     assert make_config("diamond", overrides={"sss_light_depth": 32}).shading.sss_light_depth == 32
     with pytest.raises(ValueError, match="sss_light_depth"):
         RelightableScene(sphere_of_gaussians(count=10), sss_light_depth=-1)
+    for key in ("sss_light_depth", "sss_lr_warmup_steps"):  # refused when configured, naming the key
+        with pytest.raises(ValueError, match=f"config key '.*{key.removeprefix('sss_lr_')}' must be >= 0, got -1"):
+            make_config("diamond", sets=[f"{key}=-1"])
 
 
 def test_sss_mlp_light_depth_input_is_its_last_column():
@@ -117,3 +120,11 @@ def test_light_depth_cpu_cuda_parity():
     assert gpu.device.type == "cuda"
     # the rasterizers differ in float32 rounding: compare where the depth map is smooth (all but a few edge texels)
     assert ((cpu - gpu.cpu()).abs() < 1e-2).float().mean() > 0.99
+
+
+def test_depth_below_surface_of_no_points_and_of_an_empty_map():
+    w2c, K = light_cameras(torch.tensor([[0.0, 0.0, 4.0]]), torch.zeros(3), 1.0, 8)
+    depth, alpha = torch.full((1, 8, 8, 1), 3.5), torch.ones(1, 8, 8, 1)
+    assert depth_below_surface(torch.zeros(0, 3), w2c, K, depth, alpha).shape == (1, 0, 1)
+    t = depth_below_surface(torch.zeros(5, 3), w2c, K, depth, torch.zeros_like(alpha))  # the light sees nothing
+    assert torch.equal(t, torch.zeros(1, 5, 1))

@@ -62,7 +62,7 @@ def depth_below_surface(points: Tensor, w2c: Tensor, K: Tensor, depth: Tensor, a
     uv, z = project_points(points.expand(batch, *points.shape), w2c, K)
     size = depth.shape[1]
     covered = alpha[..., 0] > 0.5
-    far = z.detach().amax() + 1.0
+    far = (z.detach().amax() if z.numel() else z.new_zeros(())) + 1.0  # behind every point
     surface = torch.where(covered, depth[..., 0], far.expand_as(depth[..., 0]))
     first_hit = sample_bilinear(surface, uv)
     inside = (z > 0) & (uv >= 0).all(-1) & (uv <= size).all(-1)

@@ -134,6 +134,9 @@ POSITIVE_KEYS = ("schedule.iterations", "schedule.batch_size", "gaussians.count"
                  "shading.sss_width", "runtime.checkpoint_every", "runtime.log_every", "densify.refine_every",
                  "raytrace.every", "multiview.target_downscale")
 
+NON_NEGATIVE_INT_KEYS = ("shading.sss_light_depth", "lr.sss_warmup_steps", "lr.position_delay_steps")
+"""Sizes and step counts where 0 means off."""
+
 CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"), "gaussians.hull_masks": ("real", "all"),
            "losses.photometric_space": ("linear", "srgb"), "multiview.target_mode": ("nearest-k", "random"),
            "shading.light_falloff": ("none", "inverse_square")}
@@ -147,6 +150,7 @@ def validate_config(config: TrainConfig) -> None:
     non_negative = [f"losses.{f.name}" for f in dataclasses.fields(config.losses)
                     if f.name.startswith("lambda_") or f.name == "synthetic_weight"]
     non_negative += [f"lr.{f.name}" for f in dataclasses.fields(config.lr) if f.type in (float, "float")]
+    non_negative += NON_NEGATIVE_INT_KEYS
     for key in non_negative:
         if not config.get(key) >= 0:
             raise ValueError(f"config key '{key}' must be >= 0, got {config.get(key)}")
