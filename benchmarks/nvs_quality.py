@@ -37,6 +37,7 @@ from diamond_sss.diffusion.nvs.pipeline import (
 )
 from diamond_sss.diffusion.nvs.rays import view_angle_degrees
 from diamond_sss.evaluation.metrics import image_metrics
+from diamond_sss.pipeline.capture import lattice_header
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
@@ -46,19 +47,22 @@ ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 181))
 
 
 def single_image_capture(data: Path, view: int, light: int, out: Path) -> Path:
-    """A capture folder holding only image ``(view, light)`` of ``data`` (frames point at the originals)."""
-    transforms = json.loads((data / "transforms_train.json").read_text())
+    """A capture folder holding only image ``(view, light)`` of ``data`` (either transforms format): one frame
+    with that view's camera, that light and the original image (and mask file, if any); no geometry maps."""
     dataset = OLATDataset(data, "train")
     obs = dataset.observations[dataset.observation_index(view, light)]
-    frame = dict(transforms["frames"][obs.frame])
-    k = [str((data / p).resolve()) for p in frame["file_paths"]].index(str(Path(obs.image_path).resolve()))
-    frame["file_paths"] = [str((data / frame["file_paths"][k]).resolve())]
-    for key in ("light_positions", "light_intensities"):
-        frame[key] = [frame[key][k]]
-    for key in ("depth_path", "normal_path"):
-        frame.pop(key, None)
+    lattice = lattice_header(dataset)
+    lit = lattice["lights"][light]
+    frame = {
+        **lattice["cameras"][view],
+        "file_paths": [str(obs.image_path)],
+        "light_positions": [lit["position"]],
+        "light_intensities": [lit["intensity"]],
+    }
+    if obs.mask_path is not None:
+        frame["mask_paths"] = [str(obs.mask_path)]
     out.mkdir(parents=True, exist_ok=True)
-    (out / "transforms_train.json").write_text(json.dumps({**transforms, "frames": [frame]}))
+    (out / "transforms_train.json").write_text(json.dumps({"frames": [frame]}))
     return out
 
 
@@ -147,6 +151,7 @@ def evaluate_object(
 
 
 def summarise(rows: list[dict]) -> list[dict]:
+    """Mean PSNR / SSIM / mask IoU per angle bin and method (bins in order, methods in order of first row)."""
     table = []
     for low, high in ANGLE_BINS:
         for method in dict.fromkeys(r["method"] for r in rows):
@@ -163,7 +168,29 @@ def summarise(rows: list[dict]) -> list[dict]:
     return table
 
 
-def main() -> None:
+def markdown_table(table: list[dict]) -> str:
+    """The rows of :func:`summarise` as a Markdown table."""
+    lines = [
+        "| angle from reference (deg) | method | images | PSNR | SSIM | mask IoU |",
+        "|---|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r['angles']} | {r['method']} | {r['images']} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
+        f"{r['mask_iou']:.3f} |"
+        for r in table
+    ]
+    return "\n".join(lines)
+
+
+def settings_record(args: argparse.Namespace) -> dict:
+    """The command line as JSON values (paths as strings), recorded with the results."""
+    settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
+    settings["data"] = [str(d) for d in args.data]
+    return settings
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line ``argv`` (default: the process's)."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -180,7 +207,26 @@ def main() -> None:
         "--geometry", default="maps", help="reference depth for the warp hint: 'maps' or a run folder"
     )
     parser.add_argument("--out", type=Path, default=RESULTS)
-    args = parser.parse_args()
+    return parser.parse_args(argv)
+
+
+def check_reference(args: argparse.Namespace) -> None:
+    """Stop, naming the option, its value and the valid range, unless every ``--data`` capture has image
+    ``(--view, --light)``; done before any work."""
+    for data in args.data:
+        dataset = OLATDataset(data, "train")
+        for option, value, count, what in (("--view", args.view, dataset.num_views, "views"),
+                                           ("--light", args.light, dataset.num_lights, "lights")):
+            if not 0 <= value < count:
+                raise SystemExit(f"{option} {value} is out of range for {data}: its {what} are 0..{count - 1}")
+        if not dataset.presence[args.view, args.light]:
+            raise SystemExit(f"--view {args.view} --light {args.light}: {data} has no image of view {args.view} "
+                             f"under light {args.light}")
+
+
+def main() -> None:
+    args = parse_args()
+    check_reference(args)
     model = args.model or default_model_dir()
     geometry = geometry_source(args.geometry)
     rows = []
@@ -197,23 +243,13 @@ def main() -> None:
             geometry,
         )
     table = summarise(rows)
-    lines = [
-        "| angle from reference (deg) | method | images | PSNR | SSIM | mask IoU |",
-        "|---|---|---|---|---|---|",
-    ]
-    lines += [
-        f"| {r['angles']} | {r['method']} | {r['images']} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
-        f"{r['mask_iou']:.3f} |"
-        for r in table
-    ]
+    text = markdown_table(table)
     args.out.mkdir(parents=True, exist_ok=True)
-    settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
-    settings["data"] = [str(d) for d in args.data]
     (args.out / "nvs_quality.json").write_text(
-        json.dumps({"settings": settings, "summary": table, "images": rows}, indent=2) + "\n"
+        json.dumps({"settings": settings_record(args), "summary": table, "images": rows}, indent=2) + "\n"
     )
-    (args.out / "nvs_quality.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    (args.out / "nvs_quality.md").write_text(text + "\n")
+    print(text)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 from pathlib import Path
 
@@ -56,6 +57,30 @@ def shading_hint(model, conditioning: Tensor, target_codes: Tensor, source_code:
     return relit_hint(conditioning, target_codes, fit.expand(target_codes.shape[0]))
 
 
+def multi_light_views(dataset: OLATDataset) -> list[int]:
+    """The views with images under 2 or more lights."""
+    return [view for view in range(dataset.num_views) if int(dataset.presence[view].sum()) >= 2]
+
+
+def usable_objects(roots: list[Path]) -> list[Path]:
+    """The object folders with a view to relight (images under 2 or more lights, stored depth / normal maps); a
+    warning on stderr names each other folder and why; stops when there is none."""
+    usable = []
+    for root in roots:
+        dataset = OLATDataset(root)
+        views = multi_light_views(dataset)
+        if any(dataset.has_geometry_maps(view) for view in views):
+            usable.append(root)
+            continue
+        why = ("no view with images under 2 or more lights has stored depth / normal maps "
+               "('depth_path' / 'normal_path')" if views else "no view has images under 2 or more lights")
+        print(f"warning: skipping {root}: {why}", file=sys.stderr)
+    if not usable:
+        raise SystemExit(f"no object to evaluate among the {len(roots)} folder(s) of --data: relighting needs a "
+                         "view with images under 2 or more lights and stored depth / normal maps")
+    return usable
+
+
 def evaluate_object(
     root: Path, model, steps: int, samples: int, seed: int, cache: OutputCache
 ) -> tuple[list[dict], list[np.ndarray]]:
@@ -64,10 +89,10 @@ def evaluate_object(
     dataset = OLATDataset(root)
     rows, figure_row = [], []
     geometry = StoredMapsGeometry()
-    for view in range(dataset.num_views):
-        lights = [int(i) for i in torch.nonzero(dataset.presence[view])[:, 0]]
-        if len(lights) < 2 or not dataset.has_geometry_maps(view):
+    for view in multi_light_views(dataset):
+        if not dataset.has_geometry_maps(view):
             continue
+        lights = [int(i) for i in torch.nonzero(dataset.presence[view])[:, 0]]
         source_light, targets = lights[0], lights[1:]
         source = dataset.load(dataset.observation_index(view, source_light))
         depth, normals = dataset.load_geometry_maps(view)
@@ -162,7 +187,33 @@ def summarize(rows: list[dict]) -> dict:
     return summary
 
 
-def main() -> None:
+def run_settings(args: argparse.Namespace) -> dict:
+    """The settings recorded with the results: the model ("shipped" when not given), sampling, object folders."""
+    return {
+        "model": str(args.model or "shipped"),
+        "steps": args.steps,
+        "samples": args.samples,
+        "seed": args.seed,
+        "objects": [str(p) for p in args.data],
+    }
+
+
+def report_lines(summary: dict) -> list[str]:
+    """The printed report of :func:`summarize`: mean PSNR / SSIM per method, PSNR per object, the margins."""
+    lines = [f"{'method':<12}{'PSNR':>8}{'SSIM':>8}"]
+    for method, values in summary["overall"].items():
+        lines.append(f"{method:<12}{values['psnr']:>8.2f}{values['ssim']:>8.3f}")
+    lines += ["", f"{'object (PSNR)':<20}" + "".join(f"{m:>12}" for m in METHODS)]
+    for name, values in summary["per_object"].items():
+        lines.append(f"{name:<20}" + "".join(f"{values[m]['psnr']:>12.2f}" for m in METHODS))
+    lines.append(
+        f"margin over baselines (dB): {summary['margin_db']}; beats both by 2 dB: {summary['beats_baselines_by_2db']}"
+    )
+    return lines
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line ``argv`` (default: the process's)."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -172,24 +223,23 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=8, help="samples averaged per image")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=RESULTS)
-    args = parser.parse_args()
+    return parser.parse_args(argv)
+
+
+def main() -> None:
+    args = parse_args()
+    objects = usable_objects(args.data)
     model = load_model(args.model).eval()
     rows, figure = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        for root in args.data:
+        for root in objects:
             object_rows, figure_row = evaluate_object(
                 root, model, args.steps, args.samples, args.seed, OutputCache(tmp)
             )
             rows += object_rows
             figure.append(figure_row)
     summary = summarize(rows)
-    summary["settings"] = {
-        "model": str(args.model or "shipped"),
-        "steps": args.steps,
-        "samples": args.samples,
-        "seed": args.seed,
-        "objects": [str(p) for p in args.data],
-    }
+    summary["settings"] = run_settings(args)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "relight_quality.json").write_text(
         json.dumps({"summary": summary, "rows": rows}, indent=2) + "\n"
@@ -197,19 +247,11 @@ def main() -> None:
     save_image_grid(
         args.out / "relight_quality.png",
         figure,
-        row_labels=[p.name for p in args.data],
+        row_labels=[p.name for p in objects],
         col_labels=["source", *FIGURE_METHODS, "ground truth"],
         title="relighting held-out objects: first relit image of each",
     )
-    print(f"{'method':<12}{'PSNR':>8}{'SSIM':>8}")
-    for method, values in summary["overall"].items():
-        print(f"{method:<12}{values['psnr']:>8.2f}{values['ssim']:>8.3f}")
-    print(f"\n{'object (PSNR)':<20}" + "".join(f"{m:>12}" for m in METHODS))
-    for name, values in summary["per_object"].items():
-        print(f"{name:<20}" + "".join(f"{values[m]['psnr']:>12.2f}" for m in METHODS))
-    print(
-        f"margin over baselines (dB): {summary['margin_db']}; beats both by 2 dB: {summary['beats_baselines_by_2db']}"
-    )
+    print("\n".join(report_lines(summary)))
 
 
 if __name__ == "__main__":

@@ -20,11 +20,13 @@ import torch
 
 from diamond_sss.cli.tune_commands import tune
 from diamond_sss.data.embedded import embedded_dataset
+from diamond_sss.tuning.study import default_storage
 
 RESULTS = Path(__file__).resolve().parent / "results" / "tune_demo.json"
 
 
-def main() -> None:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line ``argv`` (default: the process's)."""
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=None, help="capture (default: the embedded demo)")
@@ -36,29 +38,45 @@ def main() -> None:
     parser.add_argument("--downscale", type=float, default=2.0)
     parser.add_argument("--gaussians", type=int, default=2000)
     parser.add_argument("--device", default="auto")
-    args = parser.parse_args()
-    data = args.data or embedded_dataset("demo")
-    sets = [f"downscale={args.downscale}", f"num_gaussians={args.gaussians}"]
-    started = time.perf_counter()
-    tune(data, args.out, regime=args.regime, trials=args.trials, iterations=args.iterations,
-         report_every=args.report_every, set_=sets, device=args.device)
-    seconds = time.perf_counter() - started
-    storage = f"sqlite:///{(args.out / 'study.db').resolve()}"
-    study = optuna.load_study(study_name="diamond-sss", storage=storage)
-    trials = [{"number": t.number, "state": t.state.name, "value": t.value,
-               "preset": t.user_attrs.get("preset"), "seconds": t.user_attrs.get("seconds"),
-               "reports": len(t.intermediate_values)} for t in study.trials]
-    summary = {
+    return parser.parse_args(argv)
+
+
+def trial_sets(downscale: float, gaussians: int) -> list[str]:
+    """The ``--set`` values every trial trains with: the image downscale and the number of Gaussians."""
+    return [f"downscale={downscale}", f"num_gaussians={gaussians}"]
+
+
+def trial_records(study: optuna.Study) -> list[dict]:
+    """One record per trial: number, state, value (validation PSNR), enqueued preset, seconds, pruner reports."""
+    return [{"number": t.number, "state": t.state.name, "value": t.value,
+             "preset": t.user_attrs.get("preset"), "seconds": t.user_attrs.get("seconds"),
+             "reports": len(t.intermediate_values)} for t in study.trials]
+
+
+def demo_summary(args: argparse.Namespace, data: Path, seconds: float, study: optuna.Study, table: str) -> dict:
+    """The JSON summary: settings, machine, total wall time, every trial, the best trial and the Tab. 4 text."""
+    return {
         "data": str(data), "regime": args.regime, "iterations": args.iterations, "downscale": args.downscale,
         "num_gaussians": args.gaussians, "device": args.device, "cuda": torch.cuda.is_available(),
         "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
-        "seconds_total": round(seconds, 1), "trials": trials, "best": study.best_trial.number,
-        "table": (args.out / "tab4.md").read_text(),
+        "seconds_total": round(seconds, 1), "trials": trial_records(study), "best": study.best_trial.number,
+        "table": table,
     }
+
+
+def main() -> None:
+    args = parse_args()
+    data = args.data or embedded_dataset("demo")
+    started = time.perf_counter()
+    tune(data, args.out, regime=args.regime, trials=args.trials, iterations=args.iterations,
+         report_every=args.report_every, set_=trial_sets(args.downscale, args.gaussians), device=args.device)
+    seconds = time.perf_counter() - started
+    study = optuna.load_study(study_name="diamond-sss", storage=default_storage(args.out))
+    summary = demo_summary(args, data, seconds, study, (args.out / "tab4.md").read_text())
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(summary, indent=2) + "\n")
     print(summary["table"])
-    print(f"{len(trials)} trials in {seconds:.0f} s -> {RESULTS}")
+    print(f"{len(summary['trials'])} trials in {seconds:.0f} s -> {RESULTS}")
 
 
 if __name__ == "__main__":
