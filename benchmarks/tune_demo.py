@@ -1,7 +1,8 @@
 """A small hyperparameter study on the embedded demo capture: wall time per trial and the Tab. 4 analog.
 
 Runs ``diamond-sss tune`` (one worker, SQLite) with short trials and writes the study's outputs to
-``--out`` and a summary to ``benchmarks/results/tune_demo.json``.
+``--out`` and a summary to ``--results`` (default ``benchmarks/results/tune_demo.json``). A study already in
+``--out`` is resumed: ``--trials`` counts its earlier trials too.
 
     python benchmarks/tune_demo.py                                  # ~10 min on a loaded 2-core CPU
     python benchmarks/tune_demo.py --trials 30 --iterations 2000 --report-every 250 --device cuda
@@ -30,7 +31,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=None, help="capture (default: the embedded demo)")
-    parser.add_argument("--out", type=Path, default=Path("tune_demo"))
+    parser.add_argument("--out", type=Path, default=Path("tune_demo"), help="the study's folder (resumed if present)")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="the summary JSON")
     parser.add_argument("--regime", default="views=12,lights=6")
     parser.add_argument("--trials", type=int, default=6)
     parser.add_argument("--iterations", type=int, default=60)
@@ -73,10 +75,10 @@ def main() -> None:
     seconds = time.perf_counter() - started
     study = optuna.load_study(study_name="diamond-sss", storage=default_storage(args.out))
     summary = demo_summary(args, data, seconds, study, (args.out / "tab4.md").read_text())
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(summary, indent=2) + "\n")
+    args.results.parent.mkdir(parents=True, exist_ok=True)
+    args.results.write_text(json.dumps(summary, indent=2) + "\n")
     print(summary["table"])
-    print(f"{len(summary['trials'])} trials in {seconds:.0f} s -> {RESULTS}")
+    print(f"{len(summary['trials'])} trials in {seconds:.0f} s -> {args.results}")
 
 
 if __name__ == "__main__":

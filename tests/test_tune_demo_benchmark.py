@@ -44,6 +44,11 @@ def test_the_default_regime_fits_the_embedded_demo():
     assert (len(selection.views), len(selection.lights)) == (12, 6)
 
 
+def test_the_summary_goes_to_results_default_the_benchmarks_file_or_the_path_given(tmp_path):
+    assert tune_demo.parse_args([]).results == ROOT / "benchmarks" / "results" / "tune_demo.json"
+    assert tune_demo.parse_args(["--results", str(tmp_path / "s.json")]).results == tmp_path / "s.json"
+
+
 def test_the_trial_settings_are_config_keys_the_tune_command_accepts():
     args = tune_demo.parse_args(["--downscale", "4", "--gaussians", "500"])
     sets = parse_sets(tune_demo.trial_sets(args.downscale, args.gaussians))
