@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import shutil
@@ -10,12 +9,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from repo_scripts import load_script
 
 from diamond_sss.data import DataError, OLATDataset
 from diamond_sss.data.transforms import is_excluded, read_exclude_list
 
 FORMATS = Path(__file__).parent / "fixtures" / "formats"
-SCRIPT = Path(__file__).parents[1] / "scripts" / "make_format_fixtures.py"
+SCRIPT = "scripts/make_format_fixtures.py"
 
 
 def lattice(dataset: OLATDataset) -> list[tuple[int, int]]:
@@ -23,10 +23,7 @@ def lattice(dataset: OLATDataset) -> list[tuple[int, int]]:
 
 
 def test_the_script_writes_the_committed_fixtures(tmp_path):
-    spec = importlib.util.spec_from_file_location("make_format_fixtures", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    module.make_fixtures(tmp_path)
+    load_script(SCRIPT).make_fixtures(tmp_path)
     written = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file())
     committed = sorted(p.relative_to(FORMATS) for p in FORMATS.rglob("*") if p.is_file())
     assert written == committed

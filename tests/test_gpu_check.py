@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("gpu_check", ROOT / "scripts" / "gpu_check.py")
-gpu_check = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(gpu_check)
+from repo_scripts import load_script
+
+gpu_check = load_script("scripts/gpu_check.py", "gpu_check")
 
 
 def test_a_step_is_logged_with_its_exit_code_and_pytest_summary(tmp_path):

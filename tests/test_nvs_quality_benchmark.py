@@ -3,21 +3,18 @@ the one-image capture the Gaussian baseline trains on."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from repo_scripts import assert_stops_naming, load_script
 
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 
-ROOT = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("nvs_quality_benchmark", ROOT / "benchmarks" / "nvs_quality.py")
-nvs = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(nvs)
+nvs = load_script("benchmarks/nvs_quality.py", "nvs_quality_benchmark")
 
 
 def _row(method: str, angle: float, psnr: float, ssim: float = 0.5, mask_iou: float = 0.8) -> dict:
@@ -63,9 +60,7 @@ def test_the_recorded_settings_are_the_parsed_command_line_as_json():
     (["--data", "torus", "--baseline-iterations", "1.5"], "argument --baseline-iterations: invalid int value"),
 ])
 def test_a_bad_argument_stops_naming_it(argv, message, capsys):
-    with pytest.raises(SystemExit) as stop:
-        nvs.parse_args(argv)
-    assert stop.value.code == 2 and message in capsys.readouterr().err
+    assert_stops_naming(nvs.parse_args, argv, message, capsys)
 
 
 def test_the_baseline_capture_holds_only_the_reference_image_under_its_light(tmp_path):

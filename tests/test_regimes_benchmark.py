@@ -2,17 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
-from pathlib import Path
 
 import pytest
+from repo_scripts import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("regimes_benchmark", ROOT / "benchmarks" / "regimes.py")
-regimes = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(regimes)
+regimes = load_script("benchmarks/regimes.py", "regimes_benchmark")
 
 
 def test_variant_names_and_labels():

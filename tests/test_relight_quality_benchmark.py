@@ -3,20 +3,16 @@ recorded settings, arguments, the objects it can evaluate."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from repo_scripts import assert_stops_naming, load_script
 
 from diamond_sss.data.analytic import make_capture
 
-ROOT = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("relight_quality_benchmark",
-                                              ROOT / "benchmarks" / "relight_quality.py")
-relight = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(relight)
+relight = load_script("benchmarks/relight_quality.py", "relight_quality_benchmark")
 
 
 def _image_rows(name: str, light: int, scores: dict[str, tuple[float, float]]) -> list[dict]:
@@ -77,9 +73,7 @@ def test_the_recorded_settings_name_the_shipped_model_when_none_is_given():
     (["--data", "a", "--sead", "1"], "unrecognized arguments: --sead 1"),
 ])
 def test_a_bad_argument_stops_naming_it(argv, message, capsys):
-    with pytest.raises(SystemExit) as stop:
-        relight.parse_args(argv)
-    assert stop.value.code == 2 and message in capsys.readouterr().err
+    assert_stops_naming(relight.parse_args, argv, message, capsys)
 
 
 def _capture(root: Path, lights: int, maps_views: tuple[int, ...]) -> Path:

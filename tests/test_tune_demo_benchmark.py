@@ -3,13 +3,13 @@ the per-trial records and the JSON summary."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import optuna
 import pytest
 from optuna.trial import TrialState, create_trial
+from repo_scripts import ROOT, assert_stops_naming, load_script
 
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.embedded import embedded_dataset
@@ -18,10 +18,7 @@ from diamond_sss.training.config import canonical_key
 from diamond_sss.training.overrides import make_config, parse_sets
 from diamond_sss.tuning.space import SEARCH_SPACE
 
-ROOT = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("tune_demo_benchmark", ROOT / "benchmarks" / "tune_demo.py")
-tune_demo = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(tune_demo)
+tune_demo = load_script("benchmarks/tune_demo.py", "tune_demo_benchmark")
 
 
 def _study() -> optuna.Study:
@@ -83,6 +80,4 @@ def test_the_summary_is_json_and_names_the_best_trial_and_the_rounded_wall_time(
     (["--report_every", "10"], "unrecognized arguments: --report_every 10"),
 ])
 def test_a_bad_argument_stops_naming_it(argv, message, capsys):
-    with pytest.raises(SystemExit) as stop:
-        tune_demo.parse_args(argv)
-    assert stop.value.code == 2 and message in capsys.readouterr().err
+    assert_stops_naming(tune_demo.parse_args, argv, message, capsys)
