@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from diamond_sss.data import OLATDataset
+from diamond_sss.data import DataError, OLATDataset
 from diamond_sss.data.images import load_rgba
 from diamond_sss.diffusion.common.manifest import read_image_manifest
 from diamond_sss.diffusion.geometry import GeometrySource, geometry_source
@@ -214,7 +214,10 @@ def check_reference(args: argparse.Namespace) -> None:
     """Stop, naming the option, its value and the valid range, unless every ``--data`` capture has image
     ``(--view, --light)``; done before any work."""
     for data in args.data:
-        dataset = OLATDataset(data, "train")
+        try:
+            dataset = OLATDataset(data, "train")
+        except DataError as exc:
+            raise SystemExit(f"--data: {exc}") from exc
         for option, value, count, what in (("--view", args.view, dataset.num_views, "views"),
                                            ("--light", args.light, dataset.num_lights, "lights")):
             if not 0 <= value < count:

@@ -40,6 +40,7 @@ from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.diffusion.relight.hint import configured_fit, relit_hint
 from diamond_sss.diffusion.relight.inference import load_model, relight_view
 from diamond_sss.diffusion.relight.light import light_code
+from diamond_sss.errors import DataError
 from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.metrics import image_metrics
 
@@ -62,18 +63,26 @@ def multi_light_views(dataset: OLATDataset) -> list[int]:
     return [view for view in range(dataset.num_views) if int(dataset.presence[view].sum()) >= 2]
 
 
+def relightable_views(dataset: OLATDataset) -> list[int]:
+    """The views the benchmark relights: images under 2 or more lights and stored depth / normal maps."""
+    return [view for view in multi_light_views(dataset) if dataset.has_geometry_maps(view)]
+
+
 def usable_objects(roots: list[Path]) -> list[Path]:
     """The object folders with a view to relight (images under 2 or more lights, stored depth / normal maps); a
     warning on stderr names each other folder and why; stops when there is none."""
     usable = []
     for root in roots:
-        dataset = OLATDataset(root)
-        views = multi_light_views(dataset)
-        if any(dataset.has_geometry_maps(view) for view in views):
+        try:
+            dataset = OLATDataset(root)
+        except DataError as exc:
+            raise SystemExit(f"--data: {exc}") from exc
+        if relightable_views(dataset):
             usable.append(root)
             continue
         why = ("no view with images under 2 or more lights has stored depth / normal maps "
-               "('depth_path' / 'normal_path')" if views else "no view has images under 2 or more lights")
+               "('depth_path' / 'normal_path')" if multi_light_views(dataset) else
+               "no view has images under 2 or more lights")
         print(f"warning: skipping {root}: {why}", file=sys.stderr)
     if not usable:
         raise SystemExit(f"no object to evaluate among the {len(roots)} folder(s) of --data: relighting needs a "
@@ -89,9 +98,7 @@ def evaluate_object(
     dataset = OLATDataset(root)
     rows, figure_row = [], []
     geometry = StoredMapsGeometry()
-    for view in multi_light_views(dataset):
-        if not dataset.has_geometry_maps(view):
-            continue
+    for view in relightable_views(dataset):
         lights = [int(i) for i in torch.nonzero(dataset.presence[view])[:, 0]]
         source_light, targets = lights[0], lights[1:]
         source = dataset.load(dataset.observation_index(view, source_light))
@@ -187,14 +194,15 @@ def summarize(rows: list[dict]) -> dict:
     return summary
 
 
-def run_settings(args: argparse.Namespace) -> dict:
-    """The settings recorded with the results: the model ("shipped" when not given), sampling, object folders."""
+def run_settings(args: argparse.Namespace, objects: list[Path]) -> dict:
+    """The settings recorded with the results: the model ("shipped" when not given), sampling, the object folders
+    evaluated (``--data`` less those without a view to relight)."""
     return {
         "model": str(args.model or "shipped"),
         "steps": args.steps,
         "samples": args.samples,
         "seed": args.seed,
-        "objects": [str(p) for p in args.data],
+        "objects": [str(p) for p in objects],
     }
 
 
@@ -239,7 +247,7 @@ def main() -> None:
             rows += object_rows
             figure.append(figure_row)
     summary = summarize(rows)
-    summary["settings"] = run_settings(args)
+    summary["settings"] = run_settings(args, objects)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "relight_quality.json").write_text(
         json.dumps({"summary": summary, "rows": rows}, indent=2) + "\n"

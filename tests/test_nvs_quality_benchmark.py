@@ -156,3 +156,13 @@ def test_a_reference_image_outside_a_capture_stops_before_any_work_naming_the_op
         nvs.check_reference(args)
     assert str(stop.value.code) == message.format(data=data)
     nvs.check_reference(nvs.parse_args(["--data", str(good), str(data), "--view", "2", "--light", "1"]))
+
+
+def test_a_missing_or_damaged_capture_stops_naming_the_option_the_file_and_the_key(tmp_path):
+    with pytest.raises(SystemExit, match=f"--data: data folder not found: {tmp_path / 'absent'}"):
+        nvs.check_reference(nvs.parse_args(["--data", str(tmp_path / "absent")]))
+    damaged = tmp_path / "damaged"
+    damaged.mkdir()
+    (damaged / "transforms_train.json").write_text(json.dumps({"frames": [{"file_paths": []}]}))
+    with pytest.raises(SystemExit, match="--data: .*transforms_train.json: frame 0: key 'transform_matrix': missing"):
+        nvs.check_reference(nvs.parse_args(["--data", str(damaged)]))

@@ -56,13 +56,12 @@ def test_the_printed_report_lists_methods_then_objects_then_the_margins():
     assert lines[-1] == "margin over baselines (dB): {'source': 7.0, 'lambertian': 4.0}; beats both by 2 dB: True"
 
 
-def test_the_recorded_settings_name_the_shipped_model_when_none_is_given():
+def test_the_recorded_settings_name_the_shipped_model_when_none_is_given_and_only_the_objects_evaluated():
     args = relight.parse_args(["--data", "heldout/bunny_jade", "heldout/blob_wax", "--samples", "4"])
-    settings = relight.run_settings(args)
-    assert settings == {"model": "shipped", "steps": 1, "samples": 4, "seed": 0,
-                        "objects": ["heldout/bunny_jade", "heldout/blob_wax"]}
+    settings = relight.run_settings(args, [Path("heldout/blob_wax")])
+    assert settings == {"model": "shipped", "steps": 1, "samples": 4, "seed": 0, "objects": ["heldout/blob_wax"]}
     assert json.loads(json.dumps(settings)) == settings
-    given = relight.run_settings(relight.parse_args(["--data", "a", "--model", "models/relight"]))
+    given = relight.run_settings(relight.parse_args(["--data", "a", "--model", "models/relight"]), [Path("a")])
     assert given["model"] == "models/relight"
 
 
@@ -106,3 +105,8 @@ def test_no_object_with_a_view_to_relight_stops_with_a_message_instead_of_dividi
     assert stop.value.code == ("no object to evaluate among the 1 folder(s) of --data: relighting needs a view "
                                "with images under 2 or more lights and stored depth / normal maps")
     assert str(no_maps) in capsys.readouterr().err
+
+
+def test_a_missing_object_folder_stops_naming_the_option_and_the_folder(tmp_path):
+    with pytest.raises(SystemExit, match=f"--data: data folder not found: {tmp_path / 'absent'}"):
+        relight.usable_objects([tmp_path / "absent"])
