@@ -183,9 +183,11 @@ def markdown_table(table: list[dict]) -> str:
 
 
 def settings_record(args: argparse.Namespace) -> dict:
-    """The command line as JSON values (paths as strings), recorded with the results."""
+    """The command line as JSON values (paths as strings; the model "shipped" when not given), recorded with the
+    results."""
     settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
     settings["data"] = [str(d) for d in args.data]
+    settings["model"] = str(args.model or "shipped")
     return settings
 
 

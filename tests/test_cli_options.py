@@ -116,3 +116,20 @@ def test_seed_and_device_flags_left_out_keep_the_config_files_values(tmp_path, m
     assert seen["overrides"] == {"seed": 3}
     main(["ablate", "--data", str(tmp_path), "--out", str(tmp_path / "ablation"), "--seed", "4"])
     assert seen["overrides"] == {"seed": 4}
+
+
+def test_the_cli_defaults_are_the_experiments_own():
+    """The commands spell their defaults out (so that --help does not import torch); they must stay the
+    experiments' constants: the demo's 9-image regime and the ablation's dense, 30- and 9-image regimes and
+    variants (issue 18: counts, not percentages)."""
+    import inspect
+
+    from diamond_sss.cli.demo import demo
+    from diamond_sss.cli.train_commands import ablate
+    from diamond_sss.experiments.ablation import REGIMES, VARIANTS
+    from diamond_sss.experiments.demo import DEMO_REGIME
+
+    ablate_defaults = inspect.signature(ablate).parameters
+    assert ablate_defaults["regimes"].default == list(REGIMES) == ["all", "views=5,lights=6", "views=3,lights=3"]
+    assert ablate_defaults["variants"].default == list(VARIANTS)
+    assert inspect.signature(demo).parameters["regime"].default == DEMO_REGIME

@@ -43,14 +43,14 @@ def test_the_markdown_table_has_a_header_and_one_rounded_line_per_summary_row():
     assert {line.count("|") for line in lines} == {7}
 
 
-def test_the_recorded_settings_are_the_parsed_command_line_as_json():
+def test_the_recorded_settings_are_the_parsed_command_line_as_json_naming_the_shipped_model_when_none_is_given():
     args = nvs.parse_args(["--data", "heldout/torus", "heldout/bunny", "--steps", "50", "10", "--model", "m"])
     record = nvs.settings_record(args)
     assert json.loads(json.dumps(record)) == record
     assert record["data"] == ["heldout/torus", "heldout/bunny"] and record["model"] == "m"
     assert record["steps"] == [50, 10] and record["out"] == str(nvs.RESULTS)
     defaults = nvs.settings_record(nvs.parse_args(["--data", "torus"]))
-    assert (defaults["model"], defaults["steps"], defaults["geometry"]) == (None, [25, 1], "maps")
+    assert (defaults["model"], defaults["steps"], defaults["geometry"]) == ("shipped", [25, 1], "maps")
 
 
 @pytest.mark.parametrize("argv, message", [

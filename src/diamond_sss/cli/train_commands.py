@@ -182,7 +182,7 @@ def view(run: Path, port: int = 8080, host: str = "127.0.0.1", resolution: int =
     serve(run, host=host, port=port, resolution=resolution, device=device)
 
 
-def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5%,lights=5%", "views=3%,lights=3%"],  # noqa: B006
+def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5,lights=6", "views=3,lights=3"],  # noqa: B006
            variants: list[str] = ["sss3dgs", "diamond-no-mv", "+silhouette", "+depth", "+both"],  # noqa: B006
            iterations: int = 400, set_: SetArg = [], seed: int | None = None,  # noqa: B006
            quiet: bool = False) -> None:
