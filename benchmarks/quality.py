@@ -20,6 +20,7 @@ JSON and region figures to benchmarks/results/quality/.
 from __future__ import annotations
 
 import argparse
+import csv
 import hashlib
 import json
 import math
@@ -28,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-from diamond_sss.data.dataset import OLATDataset
+from diamond_sss.data.dataset import OLATDataset, directions_from
 from diamond_sss.data.embedded import embedded_dataset
 from diamond_sss.evaluation.noise import noise_ceiling
 from diamond_sss.evaluation.regions import region_errors, save_region_figure
@@ -88,6 +89,37 @@ def cross_split_folder(data: Path, reference: Path | None) -> Path:
                      f"`diamond-sss synth --cross-splits`, or drop --noise-reference to render them here)")
 
 
+def nearest_training_light_deg(train: OLATDataset, lights: list[int], test: OLATDataset) -> list[float]:
+    """For each test light, the angle in degrees, seen from the scene centre, to the nearest of the training
+    ``lights`` (indices into ``train``'s lights): how far a novel light lies from what the run was trained on."""
+    center = train.bounds.center
+    trained = directions_from(train.light_positions[lights], center)
+    novel = directions_from(test.light_positions, center)
+    cosine = (novel @ trained.T).amax(dim=1).clamp(-1.0, 1.0)
+    return [round(math.degrees(math.acos(c)), 1) for c in cosine.tolist()]
+
+
+def per_light_psnr(per_image_csv: Path, num_lights: int) -> list[float]:
+    """The mean PSNR of each light's images in an ``eval_<split>/per_image.csv`` (the mean over images, as the
+    split's PSNR is), lights ``0..num_lights-1``; NaN for a light without images."""
+    values: dict[int, list[float]] = {}
+    with per_image_csv.open() as handle:
+        for row in csv.DictReader(handle):
+            values.setdefault(int(row["light"]), []).append(float(row["psnr"]))
+    return [sum(values[light]) / len(values[light]) if light in values else math.nan for light in range(num_lights)]
+
+
+def per_light_table(rows: list[dict], distances: list[list[float]]) -> list[str]:
+    """Markdown: test PSNR per test light and per variant, each cell with the light's angle to the variant's nearest
+    training light (deg)."""
+    header = "| variant | " + " | ".join(f"light {i}: PSNR (deg)" for i in range(len(distances[0]))) + " |"
+    lines = [header, "|" + "---|" * (header.count("|") - 1)]
+    for row, angles in zip(rows, distances, strict=True):
+        cells = " | ".join(f"{psnr:.2f} ({angle:.0f})" for psnr, angle in zip(row["light_psnr"], angles, strict=True))
+        lines.append(f"| {row['variant']} | {cells} |")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=None, help="data folder (default: the embedded demo)")
@@ -110,7 +142,7 @@ def main() -> None:
     ceiling = noise_ceiling(OLATDataset(data, "test"), OLATDataset(reference, "test")) if reference else None
     cross = cross_split_folder(data, reference) if args.cross_splits else None
     ceiling_db = ceiling["ceiling_psnr"] if ceiling else math.nan
-    test = OLATDataset(data, "test")
+    test, train = OLATDataset(data, "test"), OLATDataset(data, "train")
     args.results.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, overrides in map(parse_variant, args.variants):
@@ -131,7 +163,10 @@ def main() -> None:
         rows.append({"variant": name, "overrides": overrides, "preset": args.preset, "regime": args.regime,
                      "iterations": args.iterations, "gaussians": result.num_gaussians, "minutes": minutes,
                      "train_psnr": fit["psnr"], **{k: scores[k] for k in ("psnr", "ssim", "masked_psnr", "mask_iou")},
-                     "regions": regions, "ceiling_psnr": ceiling_db, "split_psnr": split_psnr})
+                     "regions": regions, "ceiling_psnr": ceiling_db, "split_psnr": split_psnr,
+                     "light_psnr": per_light_psnr(run / "eval_test" / "per_image.csv", test.num_lights),
+                     "nearest_training_light_deg": nearest_training_light_deg(
+                         train, json.loads((run / "regime.json").read_text())["lights"], test)})
         print(f"{name}: test {scores['psnr']:.2f} dB, train {fit['psnr']:.2f} dB, {minutes:.1f} min", flush=True)
     cross_header = "novel view, training lights | training view, novel lights | " if cross else ""
     header = ("| variant | overrides | Gaussians | train PSNR | " + cross_header + "test PSNR | SSIM | masked PSNR | IoU | "
@@ -149,6 +184,8 @@ def main() -> None:
                      f"{r['psnr']:.2f} | "
                      f"{r['ssim']:.4f} | {r['masked_psnr']:.2f} | {r['mask_iou']:.3f} | {region_cells} | "
                      f"{ceiling_db:.2f} | {ceiling_db - r['psnr']:.2f} | {r['minutes']:.1f} |")
+    lines += ["", "Test PSNR per test light (angle to the nearest training light of the run's regime, deg):", "",
+              *per_light_table(rows, [r["nearest_training_light_deg"] for r in rows])] if rows else []
     (args.results / f"{args.tag}.json").write_text(json.dumps({"ceiling": ceiling, "rows": rows}, indent=2) + "\n")
     (args.results / f"{args.tag}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
