@@ -31,6 +31,7 @@ import torch
 
 from diamond_sss.data.dataset import OLATDataset, directions_from
 from diamond_sss.data.embedded import embedded_dataset
+from diamond_sss.data.regimes import nearest_angle_deg
 from diamond_sss.evaluation.noise import noise_ceiling
 from diamond_sss.evaluation.regions import region_errors, save_region_figure
 from diamond_sss.evaluation.run import evaluate_run
@@ -93,10 +94,9 @@ def nearest_training_light_deg(train: OLATDataset, lights: list[int], test: OLAT
     """For each test light, the angle in degrees, seen from the scene centre, to the nearest of the training
     ``lights`` (indices into ``train``'s lights): how far a novel light lies from what the run was trained on."""
     center = train.bounds.center
-    trained = directions_from(train.light_positions[lights], center)
-    novel = directions_from(test.light_positions, center)
-    cosine = (novel @ trained.T).amax(dim=1).clamp(-1.0, 1.0)
-    return [round(math.degrees(math.acos(c)), 1) for c in cosine.tolist()]
+    angles = nearest_angle_deg(directions_from(test.light_positions, center),
+                               directions_from(train.light_positions[lights], center))
+    return [round(angle, 1) for angle in angles.tolist()]
 
 
 def per_light_psnr(per_image_csv: Path, num_lights: int) -> list[float]:

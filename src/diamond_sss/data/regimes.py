@@ -60,6 +60,13 @@ def farthest_point_order(directions: Tensor, count: int, generator: torch.Genera
     return chosen
 
 
+def nearest_angle_deg(query: Tensor, reference: Tensor) -> Tensor:
+    """Angle in degrees from each unit direction of ``query [N,3]`` to the nearest of ``reference [M,3]`` ``[N]``:
+    e.g. how far a novel light lies from the lights a run was trained on."""
+    cosine = (query @ reference.T).amax(dim=1).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.acos(cosine))
+
+
 def resolve_count(value: str, total: int, key: str) -> int:
     """``"5%"`` -> ``max(1, round(0.05 total))``; ``"7"`` -> 7; ``"all"`` -> ``total``.
 
