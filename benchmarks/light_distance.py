@@ -112,7 +112,9 @@ def main() -> None:
         "run": str(args.run), "data": str(args.data), "views": views, "bins": rows,
         "lights": [{"light": light, "angle_deg": a, "psnr": p} for light, a, p in zip(lights, light_angles, light_psnrs,
                                                                                        strict=True)]})
-    save_figure(args.results / f"{tag}.png", light_angles, light_psnrs, title)
+    save_figure(args.results / f"{tag}.png", light_angles, light_psnrs,
+                f"{args.run.name} on {args.data.name}\n{len(views)} training views x {len(angles)} lights "
+                f"({len(regime['lights'])} trained on)")
     print(text)
 
 
