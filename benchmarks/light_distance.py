@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from diamond_sss.data.dataset import OLATDataset, directions_from
+from diamond_sss.data.errors import DataError
 from diamond_sss.data.regimes import nearest_angle_deg
 from diamond_sss.evaluation.evaluate import evaluate_scene
 from diamond_sss.training.run_folder import load_scene
@@ -27,6 +28,17 @@ from diamond_sss.utils.io import atomic_write_json, atomic_write_text
 
 RESULTS = Path(__file__).resolve().parent / "results" / "quality" / "light_distance"
 BIN_EDGES = (0.0, 1.0, 8.0, 12.0, 16.0, 20.0, 25.0, 35.0)
+
+
+def check_regime(regime: dict, path: Path, num_lights: int, data: Path) -> None:
+    """Stop, naming the file and key, unless ``regime`` (a run's ``regime.json``) lists views and lights that
+    ``data``'s lattice of ``num_lights`` lights holds."""
+    for key in ("views", "lights"):
+        if not isinstance(regime.get(key), list) or not regime[key]:
+            raise SystemExit(f"--run: {path}: key '{key}': expected a non-empty list of indices")
+    if max(regime["lights"]) >= num_lights:
+        raise SystemExit(f"--run: {path}: light {max(regime['lights'])} is not in --data {data} (lights "
+                         f"0..{num_lights - 1}): was the run trained on another capture?")
 
 
 def spread_views(views: list[int], count: int) -> list[int]:
@@ -88,7 +100,11 @@ def main() -> None:
     if not regime_path.is_file():
         raise SystemExit(f"--run: {regime_path} not found (a run folder of `diamond-sss train` or quality.py)")
     regime = json.loads(regime_path.read_text())
-    train = OLATDataset(args.data, "train")
+    try:
+        train = OLATDataset(args.data, "train")
+    except DataError as exc:
+        raise SystemExit(f"--data: {exc}") from exc
+    check_regime(regime, regime_path, train.num_lights, args.data)
     center = train.bounds.center
     directions = directions_from(train.light_positions, center)
     angles = nearest_angle_deg(directions, directions[regime["lights"]]).tolist()

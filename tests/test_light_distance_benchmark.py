@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 from repo_scripts import load_script
 
@@ -33,3 +34,12 @@ def test_lights_are_binned_by_angle_and_the_last_bin_is_open():
     text = light_distance.markdown(rows, "title")
     assert text.splitlines()[-1] == "| 12- | 2 | 27.0 | 25.50 |"
     assert text.splitlines()[4] == "| 0-1 | 2 | 0.0 | 34.00 |"
+
+
+def test_a_regime_that_does_not_fit_the_capture_stops_naming_the_file_and_key(tmp_path):
+    path = tmp_path / "regime.json"
+    with pytest.raises(SystemExit, match="regime.json: key 'lights': expected a non-empty list"):
+        light_distance.check_regime({"views": [0]}, path, 24, tmp_path)
+    with pytest.raises(SystemExit, match=r"light 30 is not in --data .* \(lights 0\.\.23\)"):
+        light_distance.check_regime({"views": [0], "lights": [1, 30]}, path, 24, tmp_path)
+    light_distance.check_regime({"views": [0], "lights": [1, 23]}, path, 24, tmp_path)
