@@ -53,6 +53,20 @@ def test_demo_writes_report(capture, tmp_path, capsys):
     assert "PSNR" in capsys.readouterr().out
 
 
+def test_demo_trains_the_dense_reconstruction_in_a_second_process_with_the_same_result(capture, tmp_path,
+                                                                                      monkeypatch):
+    from diamond_sss.experiments import demo
+
+    monkeypatch.setattr(demo, "_usable_cores", lambda: 2)
+    args = ["demo", "--data", str(capture), "--augment", "none", "--regime", "views=2,lights=1", "--quiet",
+            "--iterations", "3"]
+    main([*args, "--out", str(tmp_path / "parallel")])
+    main([*args, "--out", str(tmp_path / "sequential"), "--no-parallel"])
+    dense = [json.loads((tmp_path / mode / "dense" / "eval_test" / "metrics.json").read_text())
+             for mode in ("parallel", "sequential")]
+    assert dense[0]["psnr"] == dense[1]["psnr"] and dense[0]["ssim"] == dense[1]["ssim"]
+
+
 def test_demo_reuses_finished_runs_and_moves_aside_runs_made_with_other_settings(capture, tmp_path, capsys):
     args = ["demo", "--data", str(capture), "--out", str(tmp_path), "--augment", "none",
             "--regime", "views=2,lights=1", "--quiet", "--no-dense"]

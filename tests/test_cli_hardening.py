@@ -21,6 +21,19 @@ from diamond_sss.training.config import FIELDS, FLAT_KEYS
 from diamond_sss.training.overrides import describe_config, make_config, parse_sets
 
 
+def child_environment() -> dict[str, str]:
+    """This process's environment with the source tree first on PYTHONPATH (kept: the paths already there)."""
+    paths = [str(Path(__file__).parents[1] / "src"), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
+
+
+def run_child(script: str, env: dict[str, str]) -> subprocess.CompletedProcess:
+    """Run a Python script in a child interpreter; a failure shows the child's stderr."""
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=False)
+    assert result.returncode == 0, result.stderr
+    return result
+
+
 def test_info_prints_bounds_as_text_without_negative_zero(capsys):
     demo = embedded_dataset()
     main(["info", "--data", str(demo)])
@@ -93,9 +106,9 @@ def test_lpips_and_empty_mask_warnings_are_one_line_each_once(tmp_path):
         f"ds = OLATDataset({str(tmp_path)!r})\n"
         "[ds.load(i) for i in range(len(ds))]\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")}
+    env = child_environment()
     env.pop("DIAMOND_SSS_LPIPS_WEIGHTS", None)
-    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
+    result = run_child(script, env)
     lines = result.stderr.splitlines()
     assert len(lines) == 2, result.stderr
     assert lines[0] == "WARNING: LPIPS is disabled: no weights file given and $DIAMOND_SSS_LPIPS_WEIGHTS is not set"
@@ -116,6 +129,6 @@ def test_cli_help_imports_no_heavy_package():
         "heavy = ('torch', 'diffusers', 'transformers', 'mitsuba', 'optuna', 'viser', 'matplotlib')\n"
         "print(','.join(m for m in heavy if m in sys.modules))\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")}
-    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
+    env = child_environment()
+    result = run_child(script, env)
     assert result.stdout.strip() == ""

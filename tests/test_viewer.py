@@ -24,8 +24,7 @@ from diamond_sss.viewer import (
 
 def rotation_to_wxyz(matrix: np.ndarray) -> np.ndarray:
     """Quaternion of a rotation matrix (viser's SO3, independent of the code under test)."""
-    from viser import transforms
-
+    transforms = pytest.importorskip("viser.transforms", reason="needs viser (the 'viewer' extra)")
     return transforms.SO3.from_matrix(matrix).wxyz
 
 
@@ -120,6 +119,7 @@ def test_server_builds_its_gui_and_follows_it():
 
 
 def test_loopback_hosts_and_urls():
+    pytest.importorskip("viser", reason="needs viser (the 'viewer' extra)")
     from diamond_sss.viewer.server import is_loopback, viewer_url
 
     assert is_loopback("127.0.0.1") and is_loopback("localhost") and is_loopback("::1")

@@ -9,7 +9,7 @@ from rich.table import Table
 
 
 def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str = "views=3,lights=3",
-         iterations: int = 1000, augment: str = "auto", dense: bool = True, quiet: bool = False) -> None:
+         iterations: int = 1000, augment: str = "auto", dense: bool = True, parallel: bool = True, quiet: bool = False) -> None:
     """SSS-3DGS vs DIAMOND-SSS on a sparse capture of the embedded demo object (9 images), on a CPU budget.
 
     Runs (each resumable under --out; a run made with other models or settings is moved aside to
@@ -27,13 +27,15 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
         augment: diffusion stages: auto (those whose model ships with the package) | none | nvs | relight |
             nvs,relight.
         dense: also reconstruct from all images (the upper reference).
+        parallel: train the dense reconstruction in a second process beside the other two (on 2+ cores; each
+            run trains on one thread either way, so the numbers are the same).
         quiet: no progress bars.
     """
     from diamond_sss.experiments.demo import COLUMNS, run_demo
 
     console = Console()
     result = run_demo(out, data, regime=regime, iterations=iterations, augment=augment, dense=dense,
-                      show_progress=not quiet)
+                      parallel=parallel, show_progress=not quiet)
     for folder in result.moved:
         console.print(f"a run made with other settings was moved aside to {folder}")
     table = Table(title=result.title, caption="SSS-3DGS: real images only; DIAMOND-SSS: the full pipeline; "
