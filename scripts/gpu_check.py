@@ -13,7 +13,7 @@ Writes ``report.json`` and ``report.md`` (plus each step's log) under ``--out``.
     python scripts/gpu_check.py --skip suite --iterations 1000
     python scripts/gpu_check.py --skip cuda-tests suite speed speed-raster --iterations 10000 \
         --set lr.decay_step=7000 --set lr.decay_factor=0.3 --set sss_angular_inputs=true \
-        --set sss_light_depth=48   # issue 17's 10k run
+        --set sss_light_depth=64   # issue 17's 10k run (the short-run settings)
 """
 
 from __future__ import annotations

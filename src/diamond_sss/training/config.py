@@ -282,14 +282,17 @@ CPU_BUDGET: dict[str, int] = {"batch_size": 1, "num_gaussians": 3_000, "max_gaus
 """Batch 1, 3k initial Gaussians capped at 8k, lighter multi-view and ray-tracing sampling (64x64 on a CPU)."""
 
 SHORT_RUN_MODEL: dict[str, Any] = {"sss_lr": 0.005, "sss_width": 64, "lambda_incident_light": 0.0,
-                                   "lr_decay_factor": 0.3, "sss_light_depth": 48}
+                                   "lr_decay_factor": 0.3, "sss_light_depth": 64}
 """What a run 80-100x shorter than the paper's (1000 steps, not 80-100k) needs, each measured on the demo
 object (benchmarks/RESULTS.md, issue 17): the MLP learns 5x faster (+1.6 dB) and 2x wider (+0.5 dB), the
 incident light is not tied to the SH visibility, which ~10 ray-traced updates per Gaussian leave near its
 initial value (the tie then forbids shadows: +0.5 dB), and the step decay multiplies the rates by 0.3, not 0.1
 (+0.3 / +0.4 dB over no decay on two seeds; 0.1: +0.05 dB). The MLP also sees each Gaussian's depth below the
-lit surface from a 48-px depth map rendered at the light (:mod:`diamond_sss.shading.light_depth`): +1.5 to +2.0
-dB on three seeds of the dense demo object, all of it under novel lights, and -0.2 to +0.7 dB at 9 images."""
+lit surface from a 64-px depth map rendered at the light (:mod:`diamond_sss.shading.light_depth`): +1.5 to +2.0
+dB on three seeds of the dense demo object, all of it under novel lights, and -0.2 to +0.7 dB at 9 images (a
+48-px map; 64 px gave a further +0.27 dB mean on three dense seeds, +0.10 at 10k steps, +0.31 dB mean in three
+9-image pipeline runs, with the cast shadows darker, at about the same cost: the map's cost grows with the
+Gaussians, not its pixels)."""
 
 DENSE_SHORT_RUN: dict[str, Any] = {"batch_size": 2, "sss_angular_inputs": True}
 """A short run over a dense capture (the demo object's 960 images: at batch 1, 1000 steps draw each image about
