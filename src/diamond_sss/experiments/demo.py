@@ -108,10 +108,12 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
         rows.append(DemoRow(label, run_dir, metrics, time.perf_counter() - started))
 
     background = dense and parallel and _usable_cores() >= 2
-    with contextlib.ExitStack() as stack:  # leaving it (finished, failed or interrupted) terminates the process
+    with contextlib.ExitStack() as stack:  # leaving it (finished, failed or interrupted) ends the second process
         dense_job = None
         if background:
-            pool = stack.enter_context(multiprocessing.get_context("spawn").Pool(1))
+            pool = multiprocessing.get_context("spawn").Pool(1)
+            stack.callback(pool.join)  # runs after the pool's own exit, which terminates it
+            stack.enter_context(pool)
             dense_job = pool.apply_async(_timed_dense, (root, out / "dense", iterations, False))
             if show_progress:
                 print(f"dense reconstruction: training in a second process (TensorBoard log in {out / 'dense'})")
