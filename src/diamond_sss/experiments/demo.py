@@ -108,12 +108,10 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
         rows.append(DemoRow(label, run_dir, metrics, time.perf_counter() - started))
 
     background = dense and parallel and _usable_cores() >= 2
-    with contextlib.ExitStack() as stack:  # leaving it (finished, failed or interrupted) ends the second process
+    with contextlib.ExitStack() as stack:  # leaving it early (failed, interrupted) terminates the second process
         dense_job = None
         if background:
-            pool = multiprocessing.get_context("spawn").Pool(1)
-            stack.callback(pool.join)  # runs after the pool's own exit, which terminates it
-            stack.enter_context(pool)
+            pool = stack.enter_context(multiprocessing.get_context("spawn").Pool(1))
             dense_job = pool.apply_async(_timed_dense, (root, out / "dense", iterations, False))
             if show_progress:
                 print(f"dense reconstruction: training in a second process (TensorBoard log in {out / 'dense'})")
@@ -123,9 +121,13 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
             root, out / "diamond", regime=regime, preset="diamond", overrides=overrides,
             config=PipelineConfig(augment=augments, prelim_run=str(out / "sss3dgs")),
             show_progress=show_progress, move_changed_run=True))
+        if dense_job is not None:
+            metrics, seconds, dense_moved = dense_job.get()
+            pool.close()  # the worker exits on its own, releasing what it holds
+            pool.join()
+        elif dense:
+            metrics, seconds, dense_moved = _timed_dense(root, out / "dense", iterations, show_progress)
         if dense:
-            metrics, seconds, dense_moved = (dense_job.get() if dense_job is not None
-                                             else _timed_dense(root, out / "dense", iterations, show_progress))
             moved += dense_moved
             rows.append(DemoRow("dense reconstruction", out / "dense", metrics, seconds))
 
