@@ -290,7 +290,7 @@ initial value (the tie then forbids shadows: +0.5 dB), and the step decay multip
 (+0.3 / +0.4 dB over no decay on two seeds; 0.1: +0.05 dB). The MLP also sees each Gaussian's depth below the
 lit surface from a 64-px depth map rendered at the light (:mod:`diamond_sss.shading.light_depth`): +1.5 to +2.0
 dB on three seeds of the dense demo object, all of it under novel lights, and -0.2 to +0.7 dB at 9 images (a
-48-px map; 64 px gave a further +0.27 dB mean on three dense seeds, +0.10 at 10k steps, +0.31 dB mean in three
+48-px map; 64 px gave a further +0.23 dB mean on three dense seeds, +0.10 at 10k steps, +0.31 dB mean in three
 9-image pipeline runs, with the cast shadows darker, at about the same cost: the map's cost grows with the
 Gaussians, not its pixels)."""
 
