@@ -57,7 +57,7 @@ def test_demo_trains_the_dense_reconstruction_in_a_second_process_with_the_same_
                                                                                       monkeypatch):
     from diamond_sss.experiments import demo
 
-    monkeypatch.setattr(demo, "_usable_cores", lambda: 2)
+    monkeypatch.setattr(demo, "usable_cores", lambda: 2)
     args = ["demo", "--data", str(capture), "--augment", "none", "--regime", "views=2,lights=1", "--quiet",
             "--iterations", "3"]
     main([*args, "--out", str(tmp_path / "parallel")])

@@ -9,7 +9,8 @@ from rich.table import Table
 
 
 def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str = "views=3,lights=3",
-         iterations: int = 1000, augment: str = "auto", dense: bool = True, parallel: bool = True, quiet: bool = False) -> None:
+         iterations: int = 1000, augment: str = "auto", dense: bool = True, parallel: bool = True,
+         quiet: bool = False) -> None:
     """SSS-3DGS vs DIAMOND-SSS on a sparse capture of the embedded demo object (9 images), on a CPU budget.
 
     Runs (each resumable under --out; a run made with other models or settings is moved aside to

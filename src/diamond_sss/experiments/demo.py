@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import multiprocessing
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +26,7 @@ from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import changed_settings, load_scene
 from diamond_sss.utils.io import atomic_write_text, move_aside, sha256_json
+from diamond_sss.utils.processes import BackgroundCall, usable_cores
 
 DEMO_REGIME = "views=3,lights=3"
 COLUMNS = ("method", "training images", "PSNR", "SSIM", "mask IoU", "synthetic images", "minutes")
@@ -81,11 +80,6 @@ def _timed_dense(root: Path, run: Path, iterations: int, show_progress: bool) ->
     return metrics, time.perf_counter() - started, moved
 
 
-def _usable_cores() -> int:
-    """CPU cores this process may run on (its affinity mask where the platform has one)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str = DEMO_REGIME,
              iterations: int = 1000, augment: str = "auto", dense: bool = True, parallel: bool = True,
              show_progress: bool = True) -> DemoResult:
@@ -107,12 +101,13 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
         metrics = body()
         rows.append(DemoRow(label, run_dir, metrics, time.perf_counter() - started))
 
-    background = dense and parallel and _usable_cores() >= 2
+    background = dense and parallel and usable_cores() >= 2
     with contextlib.ExitStack() as stack:  # leaving it early (failed, interrupted) terminates the second process
         dense_job = None
         if background:
-            pool = stack.enter_context(multiprocessing.get_context("spawn").Pool(1))
-            dense_job = pool.apply_async(_timed_dense, (root, out / "dense", iterations, False))
+            dense_job = BackgroundCall(_timed_dense, (root, out / "dense", iterations, False),
+                                       label=f"the dense reconstruction ({out / 'dense'})")
+            stack.callback(dense_job.stop)
             if show_progress:
                 print(f"dense reconstruction: training in a second process (TensorBoard log in {out / 'dense'})")
         timed("SSS-3DGS (real images only)", out / "sss3dgs",
@@ -121,13 +116,9 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
             root, out / "diamond", regime=regime, preset="diamond", overrides=overrides,
             config=PipelineConfig(augment=augments, prelim_run=str(out / "sss3dgs")),
             show_progress=show_progress, move_changed_run=True))
-        if dense_job is not None:
-            metrics, seconds, dense_moved = dense_job.get()
-            pool.close()  # the worker exits on its own, releasing what it holds
-            pool.join()
-        elif dense:
-            metrics, seconds, dense_moved = _timed_dense(root, out / "dense", iterations, show_progress)
         if dense:
+            metrics, seconds, dense_moved = (dense_job.result() if dense_job is not None
+                                             else _timed_dense(root, out / "dense", iterations, show_progress))
             moved += dense_moved
             rows.append(DemoRow("dense reconstruction", out / "dense", metrics, seconds))
 
