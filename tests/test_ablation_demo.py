@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
+from safetensors.torch import load_file
 
 from diamond_sss.cli.main import main
 from diamond_sss.data.analytic import make_capture
@@ -62,9 +64,16 @@ def test_demo_trains_the_dense_reconstruction_in_a_second_process_with_the_same_
             "--iterations", "3"]
     main([*args, "--out", str(tmp_path / "parallel")])
     main([*args, "--out", str(tmp_path / "sequential"), "--no-parallel"])
+    models = [load_file(tmp_path / mode / "dense" / "model.safetensors") for mode in ("parallel", "sequential")]
+    assert models[0].keys() == models[1].keys()
+    for name, tensor in models[0].items():
+        torch.testing.assert_close(tensor, models[1][name], rtol=1e-5, atol=1e-6, msg=name)
     dense = [json.loads((tmp_path / mode / "dense" / "eval_test" / "metrics.json").read_text())
              for mode in ("parallel", "sequential")]
-    assert dense[0]["psnr"] == dense[1]["psnr"] and dense[0]["ssim"] == dense[1]["ssim"]
+    # the metrics' float32 CPU reductions may sum in another order in another process (seen on a 16-core machine:
+    # SSIM 0.34429011 vs 0.34429013 from the same model), so they agree to 1e-6, not to the last bit
+    for key in ("psnr", "ssim", "masked_psnr", "mask_iou"):
+        assert dense[0][key] == pytest.approx(dense[1][key], rel=1e-6), key
 
 
 def test_demo_reuses_finished_runs_and_moves_aside_runs_made_with_other_settings(capture, tmp_path, capsys):

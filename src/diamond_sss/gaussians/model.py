@@ -101,7 +101,7 @@ def nearest_neighbor_scales(points: Tensor, k: int = 3) -> Tensor:
         raise ValueError(f"need more than k={k} points to estimate scales from neighbours, got {num_points}")
     cloud = points.detach().to("cpu", torch.float64).numpy()
     tree = cKDTree(cloud, balanced_tree=False, compact_nodes=False)
-    order = torch.from_numpy(tree.indices)
+    order = torch.from_numpy(tree.indices.copy())  # scipy hands out a read-only view
     distances, _ = tree.query(cloud[tree.indices], k=k + 1, workers=-1)
     dist2 = torch.empty(num_points, dtype=torch.float64)
     dist2[order] = torch.from_numpy(distances[:, 1:]).square().mean(dim=1)
