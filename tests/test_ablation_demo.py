@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 import torch
@@ -56,14 +57,14 @@ def test_demo_writes_report(capture, tmp_path, capsys):
 
 
 def test_demo_trains_the_dense_reconstruction_in_a_second_process_with_the_same_result(capture, tmp_path,
-                                                                                      monkeypatch):
+                                                                                      monkeypatch, capsys):
     from diamond_sss.experiments import demo
 
     monkeypatch.setattr(demo, "usable_cores", lambda: 2)
-    args = ["demo", "--data", str(capture), "--augment", "none", "--regime", "views=2,lights=1", "--quiet",
-            "--iterations", "3"]
+    args = ["demo", "--data", str(capture), "--augment", "none", "--regime", "views=2,lights=1", "--iterations", "3"]
     main([*args, "--out", str(tmp_path / "parallel")])
-    main([*args, "--out", str(tmp_path / "sequential"), "--no-parallel"])
+    assert re.search(r"dense reconstruction \(second process\): 100%.* 3/3", capsys.readouterr().err)
+    main([*args, "--out", str(tmp_path / "sequential"), "--no-parallel", "--quiet"])
     models = [load_file(tmp_path / mode / "dense" / "model.safetensors") for mode in ("parallel", "sequential")]
     assert models[0].keys() == models[1].keys()
     for name, tensor in models[0].items():

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import os
+import signal
 import time
 
 import pytest
 
-from diamond_sss.utils.processes import BackgroundCall, usable_cores
+from diamond_sss.utils.processes import BackgroundCall, ChildProgress, usable_cores
 
 
 def test_the_result_comes_back():
@@ -33,3 +34,26 @@ def test_stop_terminates_a_running_call():
 
 def test_usable_cores_is_positive():
     assert 1 <= usable_cores() <= (os.cpu_count() or 1)
+
+
+def test_a_progress_bar_here_follows_the_steps_the_child_reports():
+    with ChildProgress(total=7, description="child", interval=0.05) as progress:
+        BackgroundCall(progress.reporter, (7,), label="a report").result()  # the child calls reporter(7)
+        deadline = time.perf_counter() + 30
+        while progress.bar.n != 7 and time.perf_counter() < deadline:  # the polling thread, not close(), shows it
+            time.sleep(0.05)
+        assert progress.bar.n == 7
+    assert progress.close() == 7 and progress.steps == 7
+
+
+def test_a_step_reporter_ignores_a_training_callbacks_other_arguments():
+    with ChildProgress(total=3, description="here") as progress:
+        assert progress.reporter(2, "scene", {"loss": 1.0}) is None
+    assert progress.steps == 2 and progress.bar.n == 2
+
+
+def test_a_process_killed_by_a_signal_is_an_error_naming_the_signal():
+    call = BackgroundCall(time.sleep, (60,), label="a sleep")
+    os.kill(call.process.pid, signal.SIGKILL)
+    with pytest.raises(RuntimeError, match=r"a sleep: .*killed by signal 9"):
+        call.result()

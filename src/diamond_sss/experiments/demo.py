@@ -26,7 +26,7 @@ from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import changed_settings, load_scene
 from diamond_sss.utils.io import atomic_write_text, move_aside, sha256_json
-from diamond_sss.utils.processes import BackgroundCall, usable_cores
+from diamond_sss.utils.processes import BackgroundCall, ChildProgress, StepReporter, usable_cores
 
 DEMO_REGIME = "views=3,lights=3"
 COLUMNS = ("method", "training images", "PSNR", "SSIM", "mask IoU", "synthetic images", "minutes")
@@ -61,22 +61,26 @@ class DemoResult:
 
 
 def _reconstruction(root: Path, run: Path, regime: str, preset: str, overrides: dict, show_progress: bool,
-                    moved: list[Path]) -> dict:
-    """Train (or resume, or reuse when finished) one run folder and score it on the test split."""
+                    moved: list[Path], on_step: StepReporter | None = None) -> dict:
+    """Train (or resume, or reuse when finished) one run folder and score it on the test split; ``on_step`` is
+    told every step, and the run's length once it is trained."""
     settings = changed_settings(run, make_config(preset, overrides=overrides))
     if settings:
         moved.append(move_aside(run, sha256_json(sorted(settings))[:8]))
-    train_run(root, run, regime=regime, preset=preset, overrides=overrides, resume=True,
-              show_progress=show_progress)
+    result = train_run(root, run, regime=regime, preset=preset, overrides=overrides, resume=True,
+                       show_progress=show_progress, on_step=on_step)
+    if on_step is not None:
+        on_step(result.steps)
     return evaluate_run(run, root, figures=0, show_progress=show_progress)
 
 
-def _timed_dense(root: Path, run: Path, iterations: int, show_progress: bool) -> tuple[dict, float, list[Path]]:
+def _timed_dense(root: Path, run: Path, iterations: int, show_progress: bool,
+                 on_step: StepReporter | None = None) -> tuple[dict, float, list[Path]]:
     """The dense reconstruction (every image, ``diamond`` preset, dense budget): metrics, seconds, moved folders."""
     started = time.perf_counter()
     moved: list[Path] = []
     metrics = _reconstruction(root, run, "all", "diamond", short_schedule(iterations, dense=True), show_progress,
-                              moved)
+                              moved, on_step)
     return metrics, time.perf_counter() - started, moved
 
 
@@ -86,8 +90,8 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
     """SSS-3DGS (``sss3dgs`` preset, real images only), the DIAMOND-SSS pipeline (the SSS-3DGS run reused as its
     preliminary reconstruction, the shipped diffusion models, the final reconstruction with multi-view losses)
     and, with ``dense``, DIAMOND-SSS on every image; all with ``short_schedule(iterations)`` (the dense one with
-    its dense budget). With ``parallel`` and two or more cores, the dense one trains in a second process (no
-    progress bar; its run folder holds its TensorBoard log) while the other two train here. Writes
+    its dense budget). With ``parallel`` and two or more cores, the dense one trains in a second process while the
+    other two train here (its progress bar here follows the steps it reports). Writes
     ``report.md`` and ``comparison.png`` into ``out``."""
     root = Path(data) if data is not None else embedded_dataset()
     out = Path(out)
@@ -105,11 +109,12 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
     with contextlib.ExitStack() as stack:  # leaving it early (failed, interrupted) terminates the second process
         dense_job = None
         if background:
-            dense_job = BackgroundCall(_timed_dense, (root, out / "dense", iterations, False),
+            progress = (stack.enter_context(ChildProgress(iterations, "dense reconstruction (second process)"))
+                        if show_progress else None)
+            dense_job = BackgroundCall(_timed_dense, (root, out / "dense", iterations, False,
+                                                      progress.reporter if progress else None),
                                        label=f"the dense reconstruction ({out / 'dense'})")
             stack.callback(dense_job.stop)
-            if show_progress:
-                print(f"dense reconstruction: training in a second process (TensorBoard log in {out / 'dense'})")
         timed("SSS-3DGS (real images only)", out / "sss3dgs",
               lambda: _reconstruction(root, out / "sss3dgs", regime, "sss3dgs", overrides, show_progress, moved))
         timed("DIAMOND-SSS (full pipeline)", out / "diamond" / "final", lambda: run_pipeline(

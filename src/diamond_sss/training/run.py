@@ -9,18 +9,19 @@ from typing import Any
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.regimes import select_regime
 from diamond_sss.training.overrides import make_config
-from diamond_sss.training.trainer import ImageSource, Trainer, TrainResult
+from diamond_sss.training.trainer import ImageSource, StepCallback, Trainer, TrainResult
 from diamond_sss.utils.io import atomic_write_json
 
 
 def train_run(data: Path, out: Path, *, split: str = "train", regime: str = "all", preset: str = "diamond",
               overrides: dict[str, Any] | None = None, config_file: Path | None = None, sets: Sequence[str] = (),
               resume: bool = False, show_progress: bool = True,
-              extra_sources: Sequence[ImageSource] = ()) -> TrainResult:
+              extra_sources: Sequence[ImageSource] = (), on_step: StepCallback | None = None) -> TrainResult:
     """Resolve the config, select the regime's images, train, and record everything in ``out``.
 
     The run folder records ``config.json`` (resolved), ``regime.json`` (the chosen views, lights and
-    images), ``data.json`` (where the data came from) and, when done, ``model.safetensors``.
+    images), ``data.json`` (where the data came from) and, when done, ``model.safetensors``. ``on_step`` is
+    called after every step (the trainer's :data:`~diamond_sss.training.trainer.StepCallback`).
     """
     cfg = make_config(preset, overrides=overrides, config_file=config_file, sets=sets)
     dataset = OLATDataset(data, split, downscale=cfg.runtime.downscale)
@@ -32,4 +33,4 @@ def train_run(data: Path, out: Path, *, split: str = "train", regime: str = "all
                                           "regime": regime})
     sources = [ImageSource(dataset.subset(selection.observations), 1.0), *extra_sources]
     trainer = Trainer(cfg, sources, out, show_progress=show_progress)
-    return trainer.run(resume=resume)
+    return trainer.run(resume=resume, on_step=on_step)

@@ -1,14 +1,21 @@
-"""A function run in a second (spawned) process: its result, its exception, or an error if the process dies."""
+"""A function run in a second (spawned) process: its result, its exception, or an error if the process dies; and a
+progress bar here that follows the steps the second process reports."""
 
 from __future__ import annotations
 
 import multiprocessing
 import os
 import pickle
+import threading
 import traceback
 from collections.abc import Callable
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from tqdm.auto import tqdm
+
+if TYPE_CHECKING:
+    from typing_extensions import Self  # typing.Self from Python 3.11
 
 
 def usable_cores() -> int:
@@ -35,7 +42,7 @@ class BackgroundCall:
     """``function(*args)`` started in a spawned daemon process (``function`` and ``args`` must pickle).
 
     :meth:`result` waits for it: the return value, the child's exception raised here, or a ``RuntimeError``
-    naming ``label`` and the exit code when the process ends without an answer (killed, e.g. for memory).
+    naming ``label`` and the exit code or signal when the process ends without an answer (killed, e.g. for memory).
     :meth:`stop` terminates it if it still runs (a no-op after :meth:`result`).
     """
 
@@ -52,8 +59,10 @@ class BackgroundCall:
             status, value = self._receive.recv()  # end of file: the child closed its end without sending
         except EOFError:
             self.process.join()
-            raise RuntimeError(f"{self.label}: its process ended without a result "
-                               f"(exit code {self.process.exitcode}; killed for lack of memory?)") from None
+            code = self.process.exitcode
+            how = (f"killed by signal {-code} (for lack of memory?)" if code < 0
+                   else f"exit code {code}; its error output, if any, is above")
+            raise RuntimeError(f"{self.label}: its process ended without a result ({how})") from None
         self.process.join()
         if status == "error":
             raise value
@@ -63,3 +72,59 @@ class BackgroundCall:
         if self.process.is_alive():
             self.process.terminate()
         self.process.join()
+
+
+class StepReporter:
+    """Picklable callable for the child: ``reporter(step, *_)`` records the number of steps done (any further
+    arguments, e.g. a training step callback's scene and loss terms, are ignored)."""
+
+    def __init__(self, counter: Any) -> None:
+        self.counter = counter
+
+    def __call__(self, step: int, *_: Any) -> None:
+        self.counter.value = int(step)
+
+
+class ChildProgress:
+    """A tqdm bar in this process that follows the steps a child process reports through :attr:`reporter`.
+
+    Give :attr:`reporter` to the child (e.g. as a training ``on_step`` callback); a thread polls the shared counter
+    every ``interval`` seconds. :meth:`close` (or leaving the ``with`` block) stops polling, shows the last count
+    and returns it.
+    """
+
+    def __init__(self, total: int, description: str, interval: float = 0.5) -> None:
+        self.reporter = StepReporter(multiprocessing.get_context("spawn").Value("q", 0))
+        self.bar = tqdm(total=total, desc=description, dynamic_ncols=True)
+        self._interval = interval
+        self._stopped = threading.Event()
+        self._thread = threading.Thread(target=self._follow, daemon=True)
+        self._thread.start()
+
+    @property
+    def steps(self) -> int:
+        """Steps the child has reported so far."""
+        return int(self.reporter.counter.value)
+
+    def _show(self) -> None:
+        if self.steps != self.bar.n:
+            self.bar.n = self.steps
+            self.bar.refresh()
+
+    def _follow(self) -> None:
+        while not self._stopped.wait(self._interval):
+            self._show()
+
+    def close(self) -> int:
+        if not self._stopped.is_set():
+            self._stopped.set()
+            self._thread.join()
+            self._show()
+            self.bar.close()
+        return self.steps
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
