@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -14,6 +15,8 @@ from diamond_sss.scene.model import RelightableScene
 from diamond_sss.shading.light_depth import (
     COVERAGE_MARGIN,
     MAX_HALF_ANGLE,
+    CachedLights,
+    LightMapCache,
     depth_below_surface,
     light_cameras,
 )
@@ -128,3 +131,46 @@ def test_depth_below_surface_of_no_points_and_of_an_empty_map():
     assert depth_below_surface(torch.zeros(0, 3), w2c, K, depth, alpha).shape == (1, 0, 1)
     t = depth_below_surface(torch.zeros(5, 3), w2c, K, depth, torch.zeros_like(alpha))  # the light sees nothing
     assert torch.equal(t, torch.zeros(1, 5, 1))
+
+
+def test_light_map_cache_renders_each_light_once_per_window_in_the_batch_order():
+    cache = LightMapCache(every=4)
+    calls = []
+
+    def render(rows):  # the map of batch row r is filled with 10 r + the call's number
+        calls.append(rows)
+        maps = torch.stack([torch.full((2, 2, 1), 10.0 * row + len(calls)) for row in rows])
+        return maps, -maps
+
+    cache.start_step(0)
+    depth, alpha = cache.maps(["a", "b", "a"], render)
+    assert calls == [[0, 1]] and len(cache) == 2
+    torch.testing.assert_close(depth[:, 0, 0, 0], torch.tensor([1.0, 11.0, 1.0]))
+    torch.testing.assert_close(alpha, -depth)
+    cache.start_step(3)  # same window: only the new light is rendered, the others come back as they were
+    depth, _ = cache.maps(["c", "b"], render)
+    assert calls[-1] == [0] and depth[:, 0, 0, 0].tolist() == [2.0, 11.0]
+    cache.start_step(4)  # a new window: everything again
+    depth, _ = cache.maps(["b"], render)
+    assert calls[-1] == [0] and depth[0, 0, 0, 0].item() == 3.0 and len(cache) == 1
+    cache.clear()
+    assert len(cache) == 0
+    with pytest.raises(ValueError, match="every=0"):
+        LightMapCache(0)
+
+
+def test_scene_light_depth_from_the_cache_equals_a_fresh_render_then_lags_the_geometry():
+    scene = RelightableScene(sphere_of_gaussians(), scene_center=torch.zeros(3), scene_radius=1.0, sss_light_depth=32)
+    lights = torch.tensor([[0.0, 0.0, 5.0], [3.0, -4.0, 1.0], [0.0, 0.0, 5.0]])
+    cached = CachedLights(LightMapCache(every=10), keys=[0, 1, 0])
+    fresh = scene.light_depth(lights)
+    assert torch.equal(scene.light_depth(lights, cached), fresh)
+    before = copy.deepcopy(scene)
+    with torch.no_grad():  # the geometry moves: the cached maps are those of the first use, the points are new
+        scene.gaussians.params["means"].mul_(0.9)
+    moved, reused = scene.light_depth(lights), scene.light_depth(lights, cached)
+    assert not torch.equal(moved, reused)
+    w2c, K = light_cameras(lights, scene.scene_center, scene.scene_radius, 32)
+    old_maps = before.render_geometry(w2c, K, 32, 32)
+    expected = depth_below_surface(scene.gaussians.means, w2c, K, old_maps.depth, old_maps.alpha)
+    assert torch.equal(reused, expected)

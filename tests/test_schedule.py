@@ -12,12 +12,13 @@ from diamond_sss.training.config import scale_schedule, schedule_for, short_sche
 from diamond_sss.training.overrides import load_run_config, scaled_run_schedule
 
 DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, the short-run model and decay (issue 17;
-    # the light map 64 px since session 13)
+    # the light map 64 px since session 13, reused for 10 steps since session 14)
     "iterations": 1000, "position_lr_max_steps": 1000, "batch_size": 1, "num_gaussians": 3000,
     "max_gaussians": 8000, "densify_from_iter": 250, "densify_until_iter": 850, "densification_interval": 125,
     "opacity_reset_interval": 10001, "mv_pairs_per_step": 1, "mv_pixels_per_pair": 256, "raytrace_gaussians": 512,
     "log_every": 50, "checkpoint_every": 500, "sss_lr": 0.005, "sss_width": 64, "lambda_incident_light": 0.0,
-    "lr_decay_step": 700, "lr_decay_factor": 0.3, "sss_light_depth": 64, "sss_lr_warmup_steps": 100,
+    "lr_decay_step": 700, "lr_decay_factor": 0.3, "sss_light_depth": 64, "sss_light_depth_every": 10,
+    "sss_lr_warmup_steps": 100,
 }
 
 

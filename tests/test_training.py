@@ -146,6 +146,41 @@ def test_resume_after_a_kill_matches_an_uninterrupted_run(capture, tmp_path):
     assert [h["step"] for h in history] == [1, 2, 3, 4, 5, 6]
 
 
+def test_reused_light_maps_resume_exactly_and_render_each_light_once_per_window(capture, tmp_path, monkeypatch):
+    from diamond_sss.scene.model import RelightableScene
+
+    size = 12  # no other pass renders at this size
+    light_map_renders = []
+    render_geometry = RelightableScene.render_geometry
+
+    def counting(self, viewmats, Ks, width, height, backend="auto"):
+        if width == size:
+            light_map_renders.append(viewmats.shape[0])
+        return render_geometry(self, viewmats, Ks, width, height, backend)
+
+    monkeypatch.setattr(RelightableScene, "render_geometry", counting)
+    settings = {**TINY, "iterations": 7, "checkpoint_every": 3, "sss_light_depth": size, "sss_light_depth_every": 4}
+    cfg = make_config("diamond", overrides=settings)
+    dataset = OLATDataset(capture)
+    straight = Trainer(cfg, [ImageSource(dataset)], tmp_path / "a", show_progress=False)
+    straight.run()
+    # 3 lights, 2 images a step; windows of 4 steps, also ended by the checkpoints after steps 3 and 6: at most one
+    # map per light in each of the windows of steps [0, 3), [3, 4), [4, 6), [6, 7), instead of 14; plus the one
+    # image logged at the end, rendered without the cache
+    assert sum(light_map_renders) <= 3 + 2 + 3 + 2 + 1
+    with pytest.raises(_Killed):
+        _KilledTrainer(cfg, [ImageSource(dataset)], tmp_path / "b", show_progress=False).run()
+    Trainer(cfg, [ImageSource(dataset)], tmp_path / "b", show_progress=False).run(resume=True)
+    a = load_safetensors(tmp_path / "a" / "model.safetensors")
+    b = load_safetensors(tmp_path / "b" / "model.safetensors")
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    every_step = make_config("diamond", overrides={**settings, "sss_light_depth_every": 1})
+    Trainer(every_step, [ImageSource(dataset)], tmp_path / "c", show_progress=False).run()
+    c = load_safetensors(tmp_path / "c" / "model.safetensors")
+    assert not torch.equal(a["gaussians.params.means"], c["gaussians.params.means"])  # the reuse changes the run
+
+
 def test_training_improves_the_fit(capture, tmp_path):
     cfg = make_config("diamond", overrides={**TINY, "iterations": 30, "densify": False})
     dataset = OLATDataset(capture)

@@ -22,7 +22,7 @@ from diamond_sss.data.conventions import camera_centers
 from diamond_sss.gaussians.model import GaussianModel
 from diamond_sss.rendering.rasterize import RasterOutput, rasterize
 from diamond_sss.shading.deferred import LIGHT_FALLOFFS, GBuffer, ShadingResult, deferred_shade
-from diamond_sss.shading.light_depth import depth_below_surface, light_cameras
+from diamond_sss.shading.light_depth import CachedLights, depth_below_surface, light_cameras
 from diamond_sss.shading.sh import visibility_from_sh
 from diamond_sss.shading.sss_mlp import SSSMLPConfig, SSSResidualMLP, light_geometry
 
@@ -70,7 +70,8 @@ class RelightableScene(nn.Module):
         return self.log_light_scale.exp()
 
     def gaussian_features(self, viewmats: Tensor, light_positions: Tensor,
-                          overrides: dict[str, float | Tensor] | None = None) -> Tensor:
+                          overrides: dict[str, float | Tensor] | None = None,
+                          cached_lights: CachedLights | None = None) -> Tensor:
         """Per-image, per-Gaussian G-buffer features ``[B,N,14]`` (order of ``GBUFFER_FEATURES``).
 
         The MLP sees positions, scales and light distances in units of the scene's bounding sphere
@@ -84,7 +85,7 @@ class RelightableScene(nn.Module):
         visibility = visibility_from_sh(g.visibility_sh, geometry.light_dirs).unsqueeze(-1)
         normals = g.normals
         radius = self.scene_radius
-        light_depth = self.light_depth(light_positions) / radius if self.light_depth_size else None
+        light_depth = self.light_depth(light_positions, cached_lights) / radius if self.light_depth_size else None
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.mixed_precision and means.is_cuda):
             sss = self.mlp(((means - self.scene_center) / radius).expand(batch, num, 3),
                            g.quats.expand(batch, num, 4), (g.scales / radius).expand(batch, num, 3),
@@ -103,25 +104,33 @@ class RelightableScene(nn.Module):
                           sss.incident.float(), sss.residual.float()], dim=-1)
 
     @torch.no_grad()
-    def light_depth(self, light_positions: Tensor) -> Tensor:
+    def light_depth(self, light_positions: Tensor, cached_lights: CachedLights | None = None) -> Tensor:
         """Each Gaussian centre's depth below the surface lit by each light ``[B, N, 1]`` (scene units), from a
-        ``light_depth_size``-px depth map rendered at the light (a geometric cue: no gradient)."""
+        ``light_depth_size``-px depth map rendered at the light (a geometric cue: no gradient), or taken from
+        ``cached_lights`` (training: :class:`~diamond_sss.shading.light_depth.LightMapCache`)."""
         g = self.gaussians
         size = self.light_depth_size
         w2c, K = light_cameras(light_positions, self.scene_center, self.scene_radius, size)
-        raster = self.render_geometry(w2c, K, size, size)
-        return depth_below_surface(g.means, w2c, K, raster.depth, raster.alpha)
+
+        def render(rows: list[int] | slice) -> tuple[Tensor, Tensor]:
+            raster = self.render_geometry(w2c[rows], K[rows], size, size)
+            return raster.depth, raster.alpha
+
+        depth, alpha = render(slice(None)) if cached_lights is None else cached_lights.cache.maps(cached_lights.keys,
+                                                                                                   render)
+        return depth_below_surface(g.means, w2c, K, depth, alpha)
 
     def render(self, viewmats: Tensor, Ks: Tensor, width: int, height: int, light_positions: Tensor,
                light_intensities: Tensor, *, overrides: dict[str, float | Tensor] | None = None,
-               backend: str = "auto") -> SceneRender:
+               backend: str = "auto", cached_lights: CachedLights | None = None) -> SceneRender:
         """Render ``B`` images, image ``b`` seen by camera ``viewmats[b], Ks[b]`` under light ``b``.
 
         ``viewmats [B,4,4]`` OpenCV w2c, ``Ks [B,3,3]``, ``light_positions [B,3]`` world, ``light_intensities
         [B,3]`` RGB. ``overrides`` replace materials by constants (editing), e.g. ``{"roughness": 0.2}``.
+        ``cached_lights``: where the light depth maps come from in training (default: rendered here).
         """
         g = self.gaussians
-        features = self.gaussian_features(viewmats, light_positions, overrides)
+        features = self.gaussian_features(viewmats, light_positions, overrides, cached_lights)
         raster = rasterize(g.means, g.quats, g.scales, g.opacities, features, viewmats, Ks, width, height,
                            backend=backend)
         gbuffer = GBuffer.from_features(raster.features, raster.depth, raster.alpha)

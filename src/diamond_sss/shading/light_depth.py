@@ -12,6 +12,8 @@ a learnt visibility, ``t`` is computed from the geometry for any light, so it ho
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Hashable, Sequence
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -67,3 +69,54 @@ def depth_below_surface(points: Tensor, w2c: Tensor, K: Tensor, depth: Tensor, a
     first_hit = sample_bilinear(surface, uv)
     inside = (z > 0) & (uv >= 0).all(-1) & (uv <= size).all(-1)
     return torch.where(inside, (z - first_hit).clamp_min(0.0), torch.zeros_like(z)).unsqueeze(-1)
+
+
+class LightMapCache:
+    """Light depth maps reused across training steps.
+
+    A light's map (depth and alpha, ``[1, S, S, 1]``) is rendered at its first use in each window of ``every``
+    steps and reused for the rest of the window: a cue without gradient, from a geometry that moves little in a
+    few steps. :meth:`start_step` opens a window every ``every`` steps; :meth:`clear` ends one early (the trainer
+    clears at each checkpoint, so that a run resumed there renders what the uninterrupted run renders).
+    """
+
+    def __init__(self, every: int) -> None:
+        if every < 1:
+            raise ValueError(f"a light map is reused for at least 1 step, got every={every}")
+        self.every = every
+        self._maps: dict[Hashable, tuple[Tensor, Tensor]] = {}
+
+    def __len__(self) -> int:
+        return len(self._maps)
+
+    def start_step(self, step: int) -> None:
+        """Called before each training step: a new window starts at every multiple of ``every``."""
+        if step % self.every == 0:
+            self.clear()
+
+    def clear(self) -> None:
+        self._maps.clear()
+
+    def maps(self, keys: Sequence[Hashable], render: Callable[[list[int]], tuple[Tensor, Tensor]]
+             ) -> tuple[Tensor, Tensor]:
+        """Depth and alpha maps ``[B, S, S, 1]`` of the batch's lights, named by ``keys`` (one per image).
+
+        ``render(rows)`` renders the maps of the batch rows ``rows`` (``[len(rows), S, S, 1]`` each); it is called
+        once, for the first row of every light not in the cache.
+        """
+        missing: dict[Hashable, int] = {}
+        for row, key in enumerate(keys):
+            if key not in self._maps and key not in missing:
+                missing[key] = row
+        if missing:
+            depth, alpha = render(list(missing.values()))
+            for index, key in enumerate(missing):
+                self._maps[key] = (depth[index:index + 1], alpha[index:index + 1])
+        return (torch.cat([self._maps[key][0] for key in keys]), torch.cat([self._maps[key][1] for key in keys]))
+
+
+class CachedLights(NamedTuple):
+    """A batch's lights in a :class:`LightMapCache`: the cache and one key per image (e.g. the light's index)."""
+
+    cache: LightMapCache
+    keys: Sequence[Hashable]

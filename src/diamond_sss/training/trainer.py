@@ -34,6 +34,7 @@ from diamond_sss.losses.multiview import MultiViewConfig, multiview_losses_batch
 from diamond_sss.losses.regularizers import raytrace_visibility_loss
 from diamond_sss.scene.io import read_scene, save_scene, scene_from_tensors, scene_tensors
 from diamond_sss.scene.model import RelightableScene
+from diamond_sss.shading.light_depth import CachedLights, LightMapCache
 from diamond_sss.shading.raytrace import raytraced_visibility
 from diamond_sss.shading.sh import visibility_from_sh
 from diamond_sss.training.checkpoint import resume_checkpoint, save_checkpoint
@@ -144,6 +145,8 @@ class Trainer:
         )
         self.strategy = (DefaultStrategy(**cfg.densify.strategy_kwargs(), verbose=False)
                          if cfg.densify.enabled else None)
+        every = cfg.shading.sss_light_depth_every
+        self.light_maps = LightMapCache(every) if cfg.shading.sss_light_depth > 0 and every > 1 else None
 
     # ------------------------------------------------------------------ set-up
     def _view_silhouettes(self) -> dict[int, Tensor]:
@@ -241,7 +244,7 @@ class Trainer:
         """The step's images: (source, observation) pairs, targets, light positions and intensities.
 
         Also keeps the batch's views and its masks on the host (``_batch_views``, ``_batch_masks``) for the
-        multi-view pixel sampling.
+        multi-view pixel sampling, and its lights (``_batch_lights``, indices in the union) for the light map cache.
         """
         cfg = self.cfg
         generator = rng.stream_generator(cfg.schedule.seed, step, 0)
@@ -267,6 +270,7 @@ class Trainer:
         target = TargetBatch(rgb=rgb, mask=mask, weights=torch.tensor(weights, device=self.device),
                              viewmats=self.viewmats[views_t], Ks=self.Ks[views_t])
         self._batch_views = views
+        self._batch_lights = lights
         self._batch_masks = host_masks
         return picks, target, self.light_positions[lights_t], self.light_intensities[lights_t]
 
@@ -357,7 +361,12 @@ class Trainer:
         torch.manual_seed(cfg.schedule.seed * 1_000_003 + step)
         self.set_learning_rates(optimizers, step)
         _, target, light_pos, light_rgb = self.draw_batch(step)
-        render = scene.render(target.viewmats, target.Ks, self.width, self.height, light_pos, light_rgb)
+        cached_lights = None
+        if self.light_maps is not None:
+            self.light_maps.start_step(step)
+            cached_lights = CachedLights(self.light_maps, self._batch_lights)
+        render = scene.render(target.viewmats, target.Ks, self.width, self.height, light_pos, light_rgb,
+                              cached_lights=cached_lights)
         info = render.raster.info
         if self.strategy is not None:
             self.strategy.step_pre_backward(scene.gaussians.params, gaussian_optimizers(optimizers),
@@ -404,6 +413,8 @@ class Trainer:
             self.run_dir.mkdir(parents=True, exist_ok=True)
             atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
         scene, optimizers, strategy_state, start_step, history, elapsed = self._start(resume, scene, earlier_run)
+        if self.light_maps is not None:
+            self.light_maps.clear()
         if self.strategy is not None:
             self.strategy.check_sanity(scene.gaussians.params, gaussian_optimizers(optimizers))
         self.scene = scene
@@ -442,6 +453,8 @@ class Trainer:
                 save_checkpoint(self.run_dir, done, scene_tensors(scene), optimizers, strategy_state,
                                 {"init_source": self.init_source, "history": history,
                                  "seconds": time.perf_counter() - started})
+                if self.light_maps is not None:  # a run resumed here starts with no light maps either
+                    self.light_maps.clear()
             if last:
                 break
         bar.close()
