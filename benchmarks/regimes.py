@@ -38,8 +38,9 @@ from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.experiments.ablation import regime_slug
 from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
 from diamond_sss.training.config import short_schedule
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
-from diamond_sss.training.run_folder import load_scene
+from diamond_sss.training.run_folder import load_scene, move_aside_if_trained_otherwise
 
 RESULTS = Path(__file__).resolve().parent / "results" / "regimes"
 RUNS = Path("outputs") / "benchmarks" / "regimes_counts"
@@ -115,10 +116,11 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     overrides = {**short_schedule(iterations, dense=method == "dense"), "seed": seed}
     if method in ("sss3dgs", "+mv", "dense"):
         run = runs / method
+        preset = "sss3dgs" if method == "sss3dgs" else "diamond"
+        move_aside_if_trained_otherwise(run, make_config(preset, overrides=overrides))  # settings changed since: again
         if not (run / "model.safetensors").is_file():  # a finished run is not resumed (that retrains its last part)
-            train_run(data, run, regime="all" if method == "dense" else regime,
-                      preset="sss3dgs" if method == "sss3dgs" else "diamond", overrides=overrides, resume=True,
-                      show_progress=False)
+            train_run(data, run, regime="all" if method == "dense" else regime, preset=preset, overrides=overrides,
+                      resume=True, show_progress=False)
         metrics = evaluate_run(run, data, figures=0, show_progress=False)
         real = len(json.loads((run / "regime.json").read_text())["observations"])
         return run, {**metrics, "real_images": real, "synthetic_images": 0, "real_share": 1.0}
@@ -135,7 +137,7 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     folder = runs / variant_name(method, real_share, agreement_power, tag)
     training = {key: value for key, value in settings.items() if key not in pipeline_keys}
     metrics = run_pipeline(data, folder, regime=regime, preset="diamond", overrides={**overrides, **training},
-                           seed=seed, config=config, show_progress=False)
+                           seed=seed, config=config, show_progress=False, move_changed_run=True)
     return folder / "final", metrics
 
 

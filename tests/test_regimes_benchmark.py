@@ -68,3 +68,24 @@ def test_pipeline_settings_need_a_tag(monkeypatch, capsys):
     with pytest.raises(SystemExit):
         regimes.main()
     assert "--pipeline-set and --tag go together" in capsys.readouterr().err
+
+
+def test_a_finished_run_is_reused_only_with_the_same_settings(tmp_path, monkeypatch):
+    from diamond_sss.data.analytic import make_capture
+
+    data = tmp_path / "capture"
+    make_capture(data, views=6, lights=3, size=16)
+    make_capture(data, views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
+    runs = tmp_path / "runs"
+    monkeypatch.setattr(regimes, "short_schedule", lambda iterations, dense=False: {"iterations": iterations,
+                                                                                     "num_gaussians": 200})
+    run, first = regimes.run_method("sss3dgs", data, runs, "views=2,lights=1", 2)
+    written = (run / "model.safetensors").stat().st_mtime_ns
+    _, again = regimes.run_method("sss3dgs", data, runs, "views=2,lights=1", 2)
+    assert (run / "model.safetensors").stat().st_mtime_ns == written and again == first  # reused as it was
+    monkeypatch.setattr(regimes, "short_schedule", lambda iterations, dense=False: {"iterations": iterations,
+                                                                                     "num_gaussians": 250})
+    regimes.run_method("sss3dgs", data, runs, "views=2,lights=1", 2)  # other settings: trained again
+    aside = [path for path in runs.iterdir() if path.name.startswith("sss3dgs.")]
+    assert len(aside) == 1 and (aside[0] / "model.safetensors").is_file()
+    assert json.loads((run / "train_summary.json").read_text())["num_gaussians"] == 250

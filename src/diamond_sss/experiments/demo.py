@@ -24,8 +24,8 @@ from diamond_sss.pipeline.run import parse_augment, run_pipeline
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
-from diamond_sss.training.run_folder import changed_settings, load_scene
-from diamond_sss.utils.io import atomic_write_text, move_aside, sha256_json
+from diamond_sss.training.run_folder import load_scene, move_aside_if_trained_otherwise
+from diamond_sss.utils.io import atomic_write_text
 from diamond_sss.utils.processes import BackgroundCall, ChildProgress, StepReporter, usable_cores
 
 DEMO_REGIME = "views=3,lights=3"
@@ -64,9 +64,8 @@ def _reconstruction(root: Path, run: Path, regime: str, preset: str, overrides: 
                     moved: list[Path], on_step: StepReporter | None = None) -> dict:
     """Train (or resume, or reuse when finished) one run folder and score it on the test split; ``on_step`` is
     told every step, and the run's length once it is trained."""
-    settings = changed_settings(run, make_config(preset, overrides=overrides))
-    if settings:
-        moved.append(move_aside(run, sha256_json(sorted(settings))[:8]))
+    if (moved_run := move_aside_if_trained_otherwise(run, make_config(preset, overrides=overrides))) is not None:
+        moved.append(moved_run)
     result = train_run(root, run, regime=regime, preset=preset, overrides=overrides, resume=True,
                        show_progress=show_progress, on_step=on_step)
     if on_step is not None:

@@ -13,7 +13,7 @@ from diamond_sss.scene.io import read_scene
 from diamond_sss.scene.model import RelightableScene
 from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.overrides import load_run_config
-from diamond_sss.utils.io import read_json
+from diamond_sss.utils.io import move_aside, read_json, sha256_json
 
 
 def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[RelightableScene, TrainConfig]:
@@ -39,6 +39,15 @@ def changed_settings(run_dir: Path, cfg: TrainConfig) -> dict[str, tuple]:
     recorded, given = load_run_config(run_dir).flat(), cfg.flat()
     return {key: (recorded[key], value) for key, value in given.items()
             if key not in RESUMABLE_KEYS and recorded.get(key) != value}
+
+
+def move_aside_if_trained_otherwise(run_dir: Path, cfg: TrainConfig) -> Path | None:
+    """Rename a run folder that records other settings than ``cfg`` (:func:`changed_settings`) to
+    ``<run_dir>.<first 8 hex of the changed keys' hash>`` and return the new path, so that a job that reuses finished
+    runs trains this one again instead of reporting a model made with other settings; ``None`` when nothing changed
+    (or there is no run). Nothing is deleted."""
+    changed = changed_settings(run_dir, cfg)
+    return move_aside(Path(run_dir), sha256_json(sorted(changed))[:8]) if changed else None
 
 
 def check_resumable(run_dir: Path, cfg: TrainConfig) -> None:
