@@ -116,8 +116,10 @@ class RelightableScene(nn.Module):
             raster = self.render_geometry(w2c[rows], K[rows], size, size)
             return raster.depth, raster.alpha
 
-        depth, alpha = render(slice(None)) if cached_lights is None else cached_lights.cache.maps(cached_lights.keys,
-                                                                                                   render)
+        if cached_lights is None:
+            depth, alpha = render(slice(None))
+        else:
+            depth, alpha = cached_lights.cache.maps(cached_lights.keys, render)
         return depth_below_surface(g.means, w2c, K, depth, alpha)
 
     def render(self, viewmats: Tensor, Ks: Tensor, width: int, height: int, light_positions: Tensor,

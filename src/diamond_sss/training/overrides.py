@@ -131,8 +131,8 @@ def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = N
 
 
 POSITIVE_KEYS = ("schedule.iterations", "schedule.batch_size", "gaussians.count", "gaussians.max_count",
-                 "shading.sss_width", "shading.sss_light_depth_every", "runtime.checkpoint_every", "runtime.log_every", "densify.refine_every",
-                 "raytrace.every", "multiview.target_downscale")
+                 "shading.sss_width", "shading.sss_light_depth_every", "runtime.checkpoint_every", "runtime.log_every",
+                 "densify.refine_every", "raytrace.every", "multiview.target_downscale")
 
 NON_NEGATIVE_INT_KEYS = ("shading.sss_light_depth", "lr.sss_warmup_steps", "lr.position_delay_steps")
 """Sizes and step counts where 0 means off."""
