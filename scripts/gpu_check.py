@@ -6,7 +6,11 @@ Steps, each timed and recorded even when an earlier one failed:
   3. the CUDA tests (``pytest -m cuda``), then the whole suite on the CUDA machine;
   4. ``benchmarks/speed.py --device cuda`` (training-step targets) and ``benchmarks/speed_raster.py``;
   5. a demo-object reconstruction on CUDA (`diamond` preset, full objective) and its evaluation on the test
-     split (novel views under novel lights).
+     split (novel views under novel lights);
+  6. with ``--prior-data``: a larger, 64-px novel-view prior (issue 18's 30-image lever) trained for
+     ``--prior-minutes`` on those captures (``scripts/make_prior_data.sh`` renders them on a CPU machine): 100 steps
+     time a step, then the run resumes up to the steps that fit; the EMA weights are written in fp16 to
+     ``<out>/nvs_prior_model`` (12 MiB), for the CPU rows of ``benchmarks/regimes.py --pipeline-set nvs_model=...``.
 Writes ``report.json`` and ``report.md`` (plus each step's log) under ``--out``.
 
     python scripts/gpu_check.py --out gpu_check            # ~10-15 min on an H100
@@ -14,6 +18,8 @@ Writes ``report.json`` and ``report.md`` (plus each step's log) under ``--out``.
     python scripts/gpu_check.py --skip cuda-tests suite speed speed-raster --iterations 10000 \
         --set lr.decay_step=7000 --set lr.decay_factor=0.3 --set sss_angular_inputs=true \
         --set sss_light_depth=64   # issue 17's 10k run (the short-run settings)
+    python scripts/gpu_check.py --skip build cuda-tests suite speed speed-raster train eval \
+        --prior-data outputs/priors/* --prior-minutes 7   # issue 18's novel-view prior
 """
 
 from __future__ import annotations
@@ -30,7 +36,12 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-STEPS = ("build", "cuda-tests", "suite", "speed", "speed-raster", "train", "eval")
+STEPS = ("build", "cuda-tests", "suite", "speed", "speed-raster", "train", "eval", "nvs-prior")
+PRIOR_MODEL = ["--image-size", "64", "--block-out-channels", "48", "96", "96", "--layers-per-block", "2",
+               "--prediction-type", "v_prediction", "--hint-residual", "--no-gradient-checkpointing",
+               "--learning-rate", "3e-4", "--checkpoint-every", "1000000", "--log-every", "20"]
+"""``finetune-nvs`` options of the GPU prior: 6.4 M parameters (3.2x the shipped model's), 64 px, the shipped recipe."""
+TIMING_STEPS = 100
 
 
 def run_step(name: str, command: list[str], out: Path, timeout: int, env: dict[str, str]) -> dict:
@@ -50,6 +61,32 @@ def run_step(name: str, command: list[str], out: Path, timeout: int, env: dict[s
     print(f"[gpu-check] {name}: exit {code} in {seconds:.0f} s (log: {log_path})", flush=True)
     return {"step": name, "exit_code": code, "seconds": round(seconds, 1), "log": log_path.name,
             "tail": output.strip().splitlines()[-15:]}
+
+
+def nvs_prior_steps(run: Path, minutes: float) -> int:
+    """Steps of the prior's run that fit ``minutes`` at the median seconds per step its timing steps logged."""
+    records = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines() if line.strip()]
+    seconds = sorted(r["seconds"] for r in records)[len(records) // 2]
+    return max(TIMING_STEPS, int(minutes * 60 / seconds) // 100 * 100)
+
+
+def run_nvs_prior(cli: list[str], data: list[Path], minutes: float, out: Path, timeout: int,
+                  env: dict[str, str]) -> dict:
+    """Train the GPU prior in two calls (timing, then the steps that fit; the second resumes the first) and
+    export its EMA weights in fp16 to ``out/nvs_prior_model``."""
+    run = out / "nvs_prior_run"
+    command = cli + ["finetune-nvs", "--out", str(run), "--data", *map(str, data), *PRIOR_MODEL]
+    timing = run_step("nvs-prior-timing", command + ["--steps", str(TIMING_STEPS)], out, timeout, env)
+    if timing["exit_code"] != 0:
+        return {**timing, "step": "nvs-prior"}
+    steps = nvs_prior_steps(run, minutes)
+    result = run_step("nvs-prior", command + ["--steps", str(steps)], out, timeout, env)
+    if result["exit_code"] == 0:
+        from diamond_sss.diffusion.nvs.model import NVSModel
+
+        NVSModel.load(run / "model").save(out / "nvs_prior_model", half=True)
+        result["tail"].append(f"{steps} steps; fp16 model -> {out / 'nvs_prior_model'}")
+    return result
 
 
 def pytest_counts(lines: list[str]) -> str:
@@ -103,9 +140,15 @@ def main() -> None:
     parser.add_argument("--timeout", type=int, default=1800, help="seconds per step at most")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="config key of the demo-object reconstruction, as `diamond-sss train --set` (repeatable)")
+    parser.add_argument("--prior-data", type=Path, nargs="*", default=[],
+                        help="captures the novel-view prior trains on (scripts/make_prior_data.sh); none: no prior")
+    parser.add_argument("--prior-minutes", type=float, default=7.0, help="training time of the novel-view prior")
     args = parser.parse_args()
     import torch
 
+    missing = [str(path) for path in args.prior_data if not (path / "meta.json").is_file()]
+    if missing:
+        parser.error(f"--prior-data: not a finished capture (no meta.json): {', '.join(missing)}")
     if not torch.cuda.is_available():
         parser.error("no CUDA GPU (torch.cuda.is_available() is False): this check is for a CUDA machine")
     out = args.out.resolve()
@@ -139,9 +182,12 @@ def main() -> None:
     }
     report = {"machine": machine_facts(), "steps": []}
     for name in STEPS:
-        if name in args.skip:
+        if name in args.skip or (name == "nvs-prior" and not args.prior_data):
             continue
-        result = run_step(name, commands[name], out, args.timeout, env)
+        if name == "nvs-prior":
+            result = run_nvs_prior(cli, args.prior_data, args.prior_minutes, out, args.timeout, env)
+        else:
+            result = run_step(name, commands[name], out, args.timeout, env)
         if name in ("cuda-tests", "suite"):
             result["summary"] = pytest_counts(result["tail"])
         report["steps"].append(result)

@@ -61,6 +61,8 @@ def test_finetune_nvs_options_are_finetune_config_and_nvs_config_fields(tmp_path
           "--no-gradient-checkpointing", "--hint-residual", "--log-every", "5"])  # the shipped recipe (README)
     assert seen["config"] == FinetuneConfig(steps=2000, learning_rate=3e-4, gradient_checkpointing=False, log_every=5,
                                             model=NVSConfig(prediction_type="v_prediction", hint_residual=True))
+    main([*base, "--image-size", "64", "--block-out-channels", "64", "128", "128", "--layers-per-block", "2"])
+    assert seen["config"].model == NVSConfig(image_size=64, block_out_channels=(64, 128, 128), layers_per_block=2)
     main([*base, "--space", "latent", "--vae", str(tmp_path / "vae")])
     assert seen["config"].model == NVSConfig(space="latent", vae_path=str(tmp_path / "vae"), warp_hint=False)
 

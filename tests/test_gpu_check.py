@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import os
 import sys
+from pathlib import Path
 
+import torch
 from repo_scripts import load_script
 
 gpu_check = load_script("scripts/gpu_check.py", "gpu_check")
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_a_step_is_logged_with_its_exit_code_and_pytest_summary(tmp_path):
@@ -37,3 +41,38 @@ def test_the_report_lists_machine_steps_speed_and_metrics():
     assert "NVIDIA H100" in text and "| cuda-tests | 0 | 12.0 | 8 passed |" in text
     assert "| cuda | 10000 | 64 | True | 1.00 | 2.00 | 5.00 | 200.0 |" in text
     assert "100.0 steps/s" in text and '"psnr": 30.1' in text
+
+
+FAKE_FINETUNE = """
+import json, sys
+from pathlib import Path
+from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
+args = sys.argv[1:]
+run, steps = Path(args[args.index("--out") + 1]), int(args[args.index("--steps") + 1])
+run.mkdir(parents=True, exist_ok=True)
+with open(run / "calls.txt", "a") as f:
+    f.write(f"{steps}\\n")
+with open(run / "train_log.jsonl", "a") as f:
+    for seconds in (0.5, 0.4, 9.0):
+        f.write(json.dumps({"step": steps, "loss": 0.1, "seconds": seconds}) + "\\n")
+NVSModel(NVSConfig(**json.loads(%r))).save(run / "model")
+"""
+
+
+def test_the_nvs_prior_is_timed_then_trained_for_the_steps_that_fit_and_exported_in_fp16(tmp_path):
+    from tiny_models import TINY_NVS
+
+    from diamond_sss.diffusion.nvs.model import NVSModel
+
+    script = tmp_path / "fake_cli.py"
+    script.write_text(FAKE_FINETUNE % json.dumps(TINY_NVS))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT / "src"), os.environ.get("PYTHONPATH")]))}
+    result = gpu_check.run_nvs_prior([sys.executable, str(script)], [tmp_path / "capture"], 7.0, tmp_path, 120, env)
+    assert result["exit_code"] == 0 and result["step"] == "nvs-prior"
+    # Median of the timing call's seconds per step (0.5, not the 9 s outlier): 7 min / 0.5 s = 840 -> 800 steps.
+    assert (tmp_path / "nvs_prior_run" / "calls.txt").read_text().split() == ["100", "800"]
+    exported = NVSModel.load(tmp_path / "nvs_prior_model")
+    trained = NVSModel.load(tmp_path / "nvs_prior_run" / "model")
+    for (key, a), (_, b) in zip(trained.state_dict().items(), exported.state_dict().items()):
+        assert torch.equal(b, a.half().float() if a.is_floating_point() else a), key
+    assert gpu_check.nvs_prior_steps(tmp_path / "nvs_prior_run", 0.01) == gpu_check.TIMING_STEPS

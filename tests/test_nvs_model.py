@@ -238,6 +238,17 @@ def test_save_load_round_trip(tmp_path):
         assert torch.equal(b, a.half().float() if a.is_floating_point() else a), k
 
 
+def test_width_and_depth_options_build_a_larger_model_that_round_trips(tmp_path):
+    small = NVSModel(NVSConfig(**TINY))
+    large = NVSModel(NVSConfig(**{**TINY, "block_out_channels": (32, 64), "layers_per_block": 2}))
+    count = lambda model: sum(p.numel() for p in model.parameters())  # noqa: E731
+    assert count(large) > 3 * count(small)
+    large.save(tmp_path)
+    loaded = NVSModel.load(tmp_path)
+    assert loaded.config == large.config
+    assert count(loaded) == count(large)
+
+
 def test_bad_inputs_give_clear_errors(tmp_path):
     with pytest.raises(ValueError, match="space"):
         NVSConfig(space="voxel")
@@ -245,6 +256,12 @@ def test_bad_inputs_give_clear_errors(tmp_path):
         NVSConfig(prediction_type="sample")
     with pytest.raises(ValueError, match="needs a VAE"):
         NVSModel(NVSConfig(**{**TINY, "space": "latent"}))
+    with pytest.raises(ValueError, match=r"one entry per UNet level \(2"):
+        NVSConfig(**{**TINY, "block_out_channels": (16, 32, 32)})
+    with pytest.raises(ValueError, match="multiples of norm_num_groups=8"):
+        NVSConfig(**{**TINY, "block_out_channels": (16, 20)})
+    with pytest.raises(ValueError, match="layers_per_block"):
+        NVSConfig(**{**TINY, "layers_per_block": 0})
     with pytest.raises(FileNotFoundError, match="config.json"):
         NVSModel.load(tmp_path)
     batch = tiny_batch()

@@ -12,7 +12,8 @@ from diamond_sss.cli.options import config_from, options_of
 from diamond_sss.diffusion.nvs.config import FinetuneConfig, NVSConfig
 
 FinetuneOptions = options_of(FinetuneConfig, exclude=("model",))
-NVSModelOptions = options_of(NVSConfig, include=("space", "image_size", "prediction_type", "hint_residual"))
+NVSModelOptions = options_of(NVSConfig, include=("space", "image_size", "prediction_type", "hint_residual",
+                                                  "block_out_channels", "layers_per_block"))
 
 
 def finetune_nvs(

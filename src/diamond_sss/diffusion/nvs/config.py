@@ -26,6 +26,8 @@ class NVSConfig:
         image_size: side of the generated images (pixels; latent space: 8x the latent side).
         prediction_type: epsilon (Free3D's objective) or v_prediction (steadier for small pixel models).
         hint_residual: denoise the residual from the warped reference where it is valid (needs the warp hint).
+        block_out_channels: UNet channels per resolution level, one per down/up block (the model's width).
+        layers_per_block: ResNet (and attention) layers per UNet block (the model's depth).
     """
 
     space: str = "pixel"
@@ -72,6 +74,20 @@ class NVSConfig:
             raise ValueError(f"latent space needs an image size divisible by 8, got {self.image_size}")
         for name in ("block_out_channels", "down_block_types", "up_block_types", "encoder_channels"):
             setattr(self, name, tuple(getattr(self, name)))
+        levels = len(self.down_block_types)
+        if len(self.block_out_channels) != levels or len(self.up_block_types) != levels:
+            raise ValueError(
+                f"block_out_channels needs one entry per UNet level ({levels}: {self.down_block_types}), "
+                f"got {self.block_out_channels}"
+            )
+        bad = [c for c in self.block_out_channels if c <= 0 or c % self.norm_num_groups]
+        if bad:
+            raise ValueError(
+                f"block_out_channels must be positive multiples of norm_num_groups={self.norm_num_groups}, "
+                f"got {self.block_out_channels}"
+            )
+        if self.layers_per_block < 1:
+            raise ValueError(f"layers_per_block must be >= 1, got {self.layers_per_block}")
 
     @property
     def model_channels(self) -> int:
