@@ -16,7 +16,7 @@ from pathlib import Path
 
 from diamond_sss.data.embedded import embedded_dataset
 from diamond_sss.experiments.ablation import REGIMES, VARIANTS, ablation_table, run_ablation
-from diamond_sss.training.config import short_schedule
+from diamond_sss.training.config import DENSE_SHORT_RUN, short_schedule
 
 RESULTS = Path(__file__).resolve().parent / "results" / "ablation"
 RUNS = Path("outputs") / "benchmarks" / "ablation"
@@ -33,7 +33,7 @@ def main() -> None:
     args = parser.parse_args()
     data = args.data or embedded_dataset()
     rows = run_ablation(data, args.out, variants=args.variants, regimes=args.regimes, iterations=args.iterations,
-                        overrides=short_schedule(args.iterations))
+                        overrides=short_schedule(args.iterations), dense_overrides=DENSE_SHORT_RUN)
     print(ablation_table(rows))
     args.results.mkdir(parents=True, exist_ok=True)
     for name in ("ablation.json", "ablation.md", "ablation_grid.png"):

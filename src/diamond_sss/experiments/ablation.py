@@ -48,9 +48,10 @@ def regime_slug(regime: str) -> str:
 
 def run_ablation(data: Path, out: Path, *, variants: Sequence[str] = tuple(VARIANTS),
                  regimes: Sequence[str] = REGIMES, iterations: int = 400, overrides: dict[str, Any] | None = None,
-                 show_progress: bool = True) -> list[AblationRow]:
-    """Train and evaluate every (variant, regime) with ``overrides`` (config keys, the seed among them) under the
-    variant's own; write ``ablation.json``, ``ablation.md`` and a figure grid."""
+                 dense_overrides: dict[str, Any] | None = None, show_progress: bool = True) -> list[AblationRow]:
+    """Train and evaluate every (variant, regime) with ``overrides`` (config keys, the seed among them), on the
+    dense regime ``all`` with ``dense_overrides`` over them (e.g. ``DENSE_SHORT_RUN``), under the variant's own;
+    write ``ablation.json``, ``ablation.md`` and a figure grid."""
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise ValueError(f"unknown ablation variants {unknown}; choose from {list(VARIANTS)}")
@@ -60,8 +61,9 @@ def run_ablation(data: Path, out: Path, *, variants: Sequence[str] = tuple(VARIA
             preset, variant_overrides = VARIANTS[variant]
             run = out / regime_slug(regime) / variant
             started = time.perf_counter()
+            regime_overrides = {**(overrides or {}), **((dense_overrides or {}) if regime == "all" else {})}
             train_run(data, run, regime=regime, preset=preset, resume=True, show_progress=show_progress,
-                      overrides={**(overrides or {}), **variant_overrides, "iterations": iterations})
+                      overrides={**regime_overrides, **variant_overrides, "iterations": iterations})
             metrics = evaluate_run(run, data, split="test", figures=0, show_progress=show_progress)
             rows.append(AblationRow(variant, regime, metrics, time.perf_counter() - started))
     write_ablation_report(out, rows, data, iterations)
