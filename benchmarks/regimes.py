@@ -262,15 +262,26 @@ def main() -> None:
                                                            "rows": rows, "mean": mean_rows(rows)}, indent=2) + "\n")
     text = markdown(rows, args.iterations, args.note)
     (args.results / "regimes.md").write_text(text)
-    first = resolve_object(args.objects[0], args.size, args.spp)
-    test = OLATDataset(first, "test")
-    columns = [key for key in finals if key[0] == first.name]
-    grid = [[to_display(test.load(0).rgb)] + [to_display(render_observation(load_scene(finals[key])[0], test, 0,
-                                                                            "cpu").radiance[0]) for key in columns]]
-    save_image_grid(args.results / "regimes_grid.png", grid, col_labels=["ground truth", *[
-        f"{'9' if k[1] == NINE else '30' if k[1] == THIRTY else 'all'}: {k[2]}" for k in columns]],
-        title=f"{first.name}: test view 0, test light 0")
+    objects = [resolve_object(spec, args.size, args.spp) for spec in args.objects]
+    save_regimes_grid(args.results / "regimes_grid.png", objects, finals, rows)
     print(text)
+
+
+def save_regimes_grid(path: Path, objects: list[Path], finals: dict[tuple[str, str, str], Path],
+                      rows: list[dict]) -> Path:
+    """One row per object: its test image 0 (view 0, light 0), then each reconstruction's render of it, labelled
+    with the regime, the method and its test PSNR (dB, the whole split)."""
+    psnr = {(r["object"], r["regime"], r["method"]): r["psnr"] for r in rows}
+    grid, labels = [], []
+    for data in objects:
+        test = OLATDataset(data, "test")
+        keys = [key for key in finals if key[0] == data.name]
+        grid.append([to_display(test.load(0).rgb)] + [
+            to_display(render_observation(load_scene(finals[key])[0], test, 0, "cpu").radiance[0]) for key in keys])
+        labels.append(["ground truth", *[f"{'9' if k[1] == NINE else '30' if k[1] == THIRTY else k[1]}: {k[2]} "
+                                         f"{psnr[k]:.2f}" for k in keys]])
+    return save_image_grid(path, grid, row_labels=[data.name for data in objects], cell_labels=labels,
+                           title="test view 0 under test light 0; test PSNR of the whole split")
 
 
 if __name__ == "__main__":

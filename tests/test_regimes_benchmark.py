@@ -89,3 +89,32 @@ def test_a_finished_run_is_reused_only_with_the_same_settings(tmp_path, monkeypa
     aside = [path for path in runs.iterdir() if path.name.startswith("sss3dgs.")]
     assert len(aside) == 1 and (aside[0] / "model.safetensors").is_file()
     assert json.loads((run / "train_summary.json").read_text())["num_gaussians"] == 250
+
+
+def test_the_grid_has_a_row_per_object_with_each_runs_render_and_psnr(tmp_path, monkeypatch):
+    import imageio.v3 as iio
+
+    from diamond_sss.data.analytic import make_capture
+
+    objects = []
+    for name, offset in (("first", 0.0), ("second", 0.3)):
+        data = tmp_path / name
+        make_capture(data, views=6, lights=3, size=16, camera_offset=offset)
+        make_capture(data, views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
+        objects.append(data)
+    monkeypatch.setattr(regimes, "short_schedule", lambda iterations, dense=False: {"iterations": iterations,
+                                                                                     "num_gaussians": 200})
+    finals, rows = {}, []
+    for data in objects:
+        run, metrics = regimes.run_method("sss3dgs", data, tmp_path / "runs" / data.name, regimes.NINE, 2)
+        finals[data.name, regimes.NINE, "sss3dgs"] = run
+        rows.append({"object": data.name, "regime": regimes.NINE, "method": "sss3dgs", "psnr": metrics["psnr"]})
+    drawn = {}
+    real = regimes.save_image_grid
+    monkeypatch.setattr(regimes, "save_image_grid", lambda path, grid, **labels: drawn.update(grid=grid, **labels)
+                        or real(path, grid, **labels))
+    path = regimes.save_regimes_grid(tmp_path / "grid.png", objects, finals, rows)
+    assert drawn["row_labels"] == ["first", "second"]
+    assert [len(row) for row in drawn["grid"]] == [2, 2]
+    assert drawn["cell_labels"][1] == ["ground truth", f"9: sss3dgs {rows[1]['psnr']:.2f}"]
+    assert iio.imread(path).shape[0] > iio.imread(path).shape[1] / 2  # two rows of two cells
