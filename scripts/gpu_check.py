@@ -65,7 +65,10 @@ def run_step(name: str, command: list[str], out: Path, timeout: int, env: dict[s
 
 def nvs_prior_steps(run: Path, minutes: float) -> int:
     """Steps of the prior's run that fit ``minutes`` at the median seconds per step its timing steps logged."""
-    records = [json.loads(line) for line in (run / "train_log.jsonl").read_text().splitlines() if line.strip()]
+    log = run / "train_log.jsonl"
+    records = [json.loads(line) for line in log.read_text().splitlines() if line.strip()] if log.is_file() else []
+    if not records:
+        raise SystemExit(f"{log}: no timed step logged by the prior's timing run (see nvs-prior-timing.log)")
     seconds = sorted(r["seconds"] for r in records)[len(records) // 2]
     return max(TIMING_STEPS, int(minutes * 60 / seconds) // 100 * 100)
 
@@ -146,6 +149,8 @@ def main() -> None:
     args = parser.parse_args()
     import torch
 
+    if not 0 < args.prior_minutes < float("inf"):
+        parser.error(f"--prior-minutes must be a positive number of minutes, got {args.prior_minutes}")
     missing = [str(path) for path in args.prior_data if not (path / "meta.json").is_file()]
     if missing:
         parser.error(f"--prior-data: not a finished capture (no meta.json): {', '.join(missing)}")

@@ -7,6 +7,7 @@ import os
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 from repo_scripts import load_script
 
@@ -76,3 +77,5 @@ def test_the_nvs_prior_is_timed_then_trained_for_the_steps_that_fit_and_exported
     for (key, a), (_, b) in zip(trained.state_dict().items(), exported.state_dict().items()):
         assert torch.equal(b, a.half().float() if a.is_floating_point() else a), key
     assert gpu_check.nvs_prior_steps(tmp_path / "nvs_prior_run", 0.01) == gpu_check.TIMING_STEPS
+    with pytest.raises(SystemExit, match="train_log.jsonl: no timed step"):
+        gpu_check.nvs_prior_steps(tmp_path / "no_run", 7.0)

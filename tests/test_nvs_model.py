@@ -259,7 +259,7 @@ def test_bad_inputs_give_clear_errors(tmp_path):
         NVSModel(NVSConfig(**{**TINY, "space": "latent"}))
     with pytest.raises(ValueError, match=r"one entry per UNet level \(2"):
         NVSConfig(**{**TINY, "block_out_channels": (16, 32, 32)})
-    with pytest.raises(ValueError, match="multiples of norm_num_groups=8"):
+    with pytest.raises(ValueError, match=r"multiples of norm_num_groups=8, got \(16, 20\) \(\[20\] are not\)"):
         NVSConfig(**{**TINY, "block_out_channels": (16, 20)})
     with pytest.raises(ValueError, match="layers_per_block"):
         NVSConfig(**{**TINY, "layers_per_block": 0})

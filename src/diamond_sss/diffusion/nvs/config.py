@@ -84,7 +84,7 @@ class NVSConfig:
         if bad:
             raise ValueError(
                 f"block_out_channels must be positive multiples of norm_num_groups={self.norm_num_groups}, "
-                f"got {self.block_out_channels}"
+                f"got {self.block_out_channels} ({bad} are not)"
             )
         if self.layers_per_block < 1:
             raise ValueError(f"layers_per_block must be >= 1, got {self.layers_per_block}")
