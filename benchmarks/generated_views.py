@@ -20,13 +20,11 @@ import argparse
 import json
 from pathlib import Path
 
-import torch
-
 from diamond_sss.data import OLATDataset
-from diamond_sss.data.images import load_rgba
 from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, GeneratedImage, read_image_manifest
 from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.metrics import image_metrics
+from diamond_sss.pipeline.agreement import load_generated, render_lattice_image
 from diamond_sss.pipeline.capture import check_on_lattice
 from diamond_sss.training.run_folder import load_scene
 
@@ -40,9 +38,14 @@ def run_inputs(run: Path) -> tuple[Path, Path]:
     manifest = run / "pipeline.json"
     if not manifest.is_file():
         raise SystemExit(f"--runs: {run} holds no pipeline.json (not a pipeline run folder)")
-    record = json.loads(manifest.read_text())
-    data = Path(record["inputs"]["data"])
-    prelim = record["stages"].get("prelim", {}).get("reused") or run / "prelim"
+    try:
+        record = json.loads(manifest.read_text())
+        data = Path(record["inputs"]["data"])
+        prelim = record.get("stages", {}).get("prelim", {}).get("reused") or run / "prelim"
+    except json.JSONDecodeError as exc:
+        raise SystemExit(f"{manifest}: not valid JSON ({exc})") from exc
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise SystemExit(f"{manifest}: no inputs.data (the capture folder) in it") from exc
     for what, path in (("capture", data), ("preliminary reconstruction", Path(prelim))):
         if not path.exists():
             raise SystemExit(f"{manifest}: its {what} {path} is gone")
@@ -69,11 +72,8 @@ def score_run(run: Path) -> tuple[list[dict], list[list]]:
             if not bool(lattice.presence[item.view, item.light]):
                 continue
             truth = lattice.load(lattice.observation_index(item.view, item.light))
-            rgb, mask = load_rgba(item.image, item.mask)
-            camera, light = lattice.cameras[item.view], lattice.lights[item.light]
-            with torch.no_grad():
-                render = scene.render(camera.w2c[None], camera.K[None], camera.width, camera.height,
-                                      light.position[None], light.intensity[None])
+            rgb, mask = load_generated(item, lattice)
+            render = render_lattice_image(scene, lattice, item.view, item.light)
             prelim_rgb, prelim_alpha = render.radiance[0].clamp(0.0, 1.0), render.gbuffer.alpha[0]
             generated = image_metrics(rgb, truth.rgb, mask, truth.mask)
             rendered = image_metrics(prelim_rgb, truth.rgb, prelim_alpha, truth.mask)

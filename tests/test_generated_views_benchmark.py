@@ -81,3 +81,18 @@ def test_a_folder_that_is_not_a_pipeline_run_is_named(tmp_path, pipeline_run):
     (tmp_path / "pipeline.json").write_text(json.dumps(record))
     with pytest.raises(SystemExit, match="its preliminary reconstruction .*gone is gone"):
         generated_views.run_inputs(tmp_path)
+    (tmp_path / "pipeline.json").write_text("{not json")
+    with pytest.raises(SystemExit, match="pipeline.json: not valid JSON"):
+        generated_views.run_inputs(tmp_path)
+    (tmp_path / "pipeline.json").write_text(json.dumps({"stages": {}}))
+    with pytest.raises(SystemExit, match=r"pipeline.json: no inputs.data \(the capture folder\)"):
+        generated_views.run_inputs(tmp_path)
+
+
+def test_a_generated_image_of_the_wrong_size_is_named(tmp_path, pipeline_run):
+    run = tmp_path / "run"
+    shutil.copytree(pipeline_run, run)
+    item = _black(4, 0, 8, run / "nvs" / "l000_v000")
+    write_image_manifest(run / "nvs" / "l000_v000", [item])
+    with pytest.raises(ValueError, match="view_004.png: generated image is 8x8, the lattice's view 4 is 16x16"):
+        generated_views.score_run(run)

@@ -22,7 +22,7 @@ from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.images import load_rgba
 from diamond_sss.diffusion.common.manifest import GeneratedImage
 from diamond_sss.pipeline.capture import check_on_lattice
-from diamond_sss.scene.model import RelightableScene
+from diamond_sss.scene.model import RelightableScene, SceneRender
 
 
 def agreement_factors(errors: list[float], power: float) -> list[float]:
@@ -35,18 +35,30 @@ def agreement_factors(errors: list[float], power: float) -> list[float]:
     return [1.0 if error <= median else (median / error) ** power for error in errors]
 
 
+def render_lattice_image(scene: RelightableScene, lattice: OLATDataset, view: int, light: int) -> SceneRender:
+    """``scene`` rendered (no gradient) at camera ``view`` of ``lattice`` under its light ``light``."""
+    camera, lit, device = lattice.cameras[view], lattice.lights[light], scene.gaussians.means.device
+    with torch.no_grad():
+        return scene.render(camera.w2c[None].to(device), camera.K[None].to(device), camera.width, camera.height,
+                            lit.position[None].to(device), lit.intensity[None].to(device))
+
+
+def load_generated(item: GeneratedImage, lattice: OLATDataset) -> tuple[torch.Tensor, torch.Tensor]:
+    """Linear RGB and mask of a generated image, checked against the size of its lattice view."""
+    rgb, mask = load_rgba(item.image, item.mask)
+    camera = lattice.cameras[item.view]
+    if (rgb.shape[1], rgb.shape[0]) != (camera.width, camera.height):
+        raise ValueError(f"{item.image}: generated image is {rgb.shape[1]}x{rgb.shape[0]}, the lattice's view "
+                         f"{item.view} is {camera.width}x{camera.height}")
+    return rgb, mask
+
+
 def render_errors(scene: RelightableScene, lattice: OLATDataset, items: list[GeneratedImage]) -> list[float]:
     """``e_i`` of each generated image against ``scene`` rendered at its view and light of ``lattice``."""
-    errors, device = [], scene.gaussians.means.device
+    errors = []
     for item in check_on_lattice(items, lattice):
-        rgb, mask = load_rgba(item.image, item.mask)
-        camera, light = lattice.cameras[item.view], lattice.lights[item.light]
-        if (rgb.shape[1], rgb.shape[0]) != (camera.width, camera.height):
-            raise ValueError(f"{item.image}: generated image is {rgb.shape[1]}x{rgb.shape[0]}, the lattice's view "
-                             f"{item.view} is {camera.width}x{camera.height}")
-        with torch.no_grad():
-            render = scene.render(camera.w2c[None].to(device), camera.K[None].to(device), camera.width,
-                                  camera.height, light.position[None].to(device), light.intensity[None].to(device))
+        rgb, mask = load_generated(item, lattice)
+        render = render_lattice_image(scene, lattice, item.view, item.light)
         rendered = render.radiance[0].cpu()
         union = torch.maximum(mask, render.gbuffer.alpha[0].cpu()).clamp(0.0, 1.0)
         difference = (linear_to_srgb(rgb.clamp_min(0.0)) - linear_to_srgb(rendered.clamp_min(0.0))).abs()

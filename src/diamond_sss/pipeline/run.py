@@ -43,7 +43,7 @@ from diamond_sss.data.regimes import RegimeSelection, farthest_point_order, sele
 from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, read_image_manifest
 from diamond_sss.evaluation.metrics import mask_iou
 from diamond_sss.evaluation.run import evaluate_run
-from diamond_sss.pipeline.agreement import agreement_factors, render_errors
+from diamond_sss.pipeline.agreement import agreement_factors, render_errors, render_lattice_image
 from diamond_sss.pipeline.capture import GeneratedImage, check_on_lattice, write_capture
 from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
 from diamond_sss.training.config import TrainConfig
@@ -294,10 +294,7 @@ class SilhouetteFilter:
         if view not in self._alpha:
             if self._scene is None:
                 self._scene = load_scene(self.ctx.prelim_dir)[0]
-            camera, light = self.ctx.real.cameras[view], self.ctx.real.lights[0]
-            with torch.no_grad():
-                render = self._scene.render(camera.w2c[None], camera.K[None], camera.width, camera.height,
-                                            light.position[None], light.intensity[None])
+            render = render_lattice_image(self._scene, self.ctx.real, view, 0)
             self._alpha[view] = render.gbuffer.alpha[0]
         return self._alpha[view]
 
