@@ -8,9 +8,11 @@ Steps, each timed and recorded even when an earlier one failed:
   5. a demo-object reconstruction on CUDA (`diamond` preset, full objective) and its evaluation on the test
      split (novel views under novel lights);
   6. with ``--prior-data``: a larger, 64-px novel-view prior (issue 18's 30-image lever) trained for
-     ``--prior-minutes`` on those captures (``scripts/make_prior_data.sh`` renders them on a CPU machine): 100 steps
-     time a step, then the run resumes up to the steps that fit; the EMA weights are written in fp16 to
-     ``<out>/nvs_prior_model`` (12 MiB), for the CPU rows of ``benchmarks/regimes.py --pipeline-set nvs_model=...``.
+     ``--prior-minutes`` of wall time on those captures (``scripts/make_prior_data.sh`` renders them on a CPU
+     machine; it also packs them into ``outputs/priors.tgz``, 10 MB, the form to carry to a lent GPU machine and
+     unpack there with ``tar xzf outputs/priors.tgz -C outputs``); the run stops checkpointed at its time limit
+     and its EMA weights are written in fp16 to ``<out>/nvs_prior_model`` (12 MiB), for the CPU rows of
+     ``benchmarks/regimes.py --pipeline-set nvs_model=...``.
 Writes ``report.json`` and ``report.md`` (plus each step's log) under ``--out``.
 
     python scripts/gpu_check.py --out gpu_check            # ~10-15 min on an H100
@@ -39,9 +41,12 @@ ROOT = Path(__file__).resolve().parents[1]
 STEPS = ("build", "cuda-tests", "suite", "speed", "speed-raster", "train", "eval", "nvs-prior")
 PRIOR_MODEL = ["--image-size", "64", "--block-out-channels", "48", "96", "96", "--layers-per-block", "2",
                "--prediction-type", "v_prediction", "--hint-residual", "--no-gradient-checkpointing",
-               "--learning-rate", "3e-4", "--checkpoint-every", "1000000", "--log-every", "20"]
+               "--learning-rate", "3e-4", "--checkpoint-every", "500", "--log-every", "20"]
 """``finetune-nvs`` options of the GPU prior: 6.4 M parameters (3.2x the shipped model's), 64 px, the shipped recipe."""
-TIMING_STEPS = 100
+PRIOR_MAX_STEPS = 1_000_000
+"""Never reached: the prior's run ends at its time limit (the learning rate is constant after the warm-up)."""
+PRIOR_GRACE_S = 300
+"""Seconds beyond its time limit before the prior's run is killed: loading the captures, the last checkpoint."""
 
 
 def run_step(name: str, command: list[str], out: Path, timeout: int, env: dict[str, str]) -> dict:
@@ -63,32 +68,18 @@ def run_step(name: str, command: list[str], out: Path, timeout: int, env: dict[s
             "tail": output.strip().splitlines()[-15:]}
 
 
-def nvs_prior_steps(run: Path, minutes: float) -> int:
-    """Steps of the prior's run that fit ``minutes`` at the median seconds per step its timing steps logged."""
-    log = run / "train_log.jsonl"
-    records = [json.loads(line) for line in log.read_text().splitlines() if line.strip()] if log.is_file() else []
-    if not records:
-        raise SystemExit(f"{log}: no timed step logged by the prior's timing run (see nvs-prior-timing.log)")
-    seconds = sorted(r["seconds"] for r in records)[len(records) // 2]
-    return max(TIMING_STEPS, int(minutes * 60 / seconds) // 100 * 100)
-
-
-def run_nvs_prior(cli: list[str], data: list[Path], minutes: float, out: Path, timeout: int,
-                  env: dict[str, str]) -> dict:
-    """Train the GPU prior in two calls (timing, then the steps that fit; the second resumes the first) and
-    export its EMA weights in fp16 to ``out/nvs_prior_model``."""
+def run_nvs_prior(cli: list[str], data: list[Path], minutes: float, out: Path, env: dict[str, str]) -> dict:
+    """Train the GPU prior for ``minutes`` of wall time (``finetune-nvs --time-limit-s``: it stops checkpointed at
+    the first step past it) and export its EMA weights in fp16 to ``out/nvs_prior_model``."""
     run = out / "nvs_prior_run"
-    command = cli + ["finetune-nvs", "--out", str(run), "--data", *map(str, data), *PRIOR_MODEL]
-    timing = run_step("nvs-prior-timing", command + ["--steps", str(TIMING_STEPS)], out, timeout, env)
-    if timing["exit_code"] != 0:
-        return {**timing, "step": "nvs-prior"}
-    steps = nvs_prior_steps(run, minutes)
-    result = run_step("nvs-prior", command + ["--steps", str(steps)], out, timeout, env)
+    command = cli + ["finetune-nvs", "--out", str(run), "--data", *map(str, data), *PRIOR_MODEL,
+                     "--steps", str(PRIOR_MAX_STEPS), "--time-limit-s", f"{minutes * 60:g}"]
+    result = run_step("nvs-prior", command, out, int(minutes * 60) + PRIOR_GRACE_S, env)
     if result["exit_code"] == 0:
         from diamond_sss.diffusion.nvs.model import NVSModel
 
         NVSModel.load(run / "model").save(out / "nvs_prior_model", half=True)
-        result["tail"].append(f"{steps} steps; fp16 model -> {out / 'nvs_prior_model'}")
+        result["tail"].append(f"fp16 model -> {out / 'nvs_prior_model'}")
     return result
 
 
@@ -190,7 +181,7 @@ def main() -> None:
         if name in args.skip or (name == "nvs-prior" and not args.prior_data):
             continue
         if name == "nvs-prior":
-            result = run_nvs_prior(cli, args.prior_data, args.prior_minutes, out, args.timeout, env)
+            result = run_nvs_prior(cli, args.prior_data, args.prior_minutes, out, env)
         else:
             result = run_step(name, commands[name], out, args.timeout, env)
         if name in ("cuda-tests", "suite"):

@@ -3,7 +3,8 @@
 # `diamond-sss synth` except the 4 benchmark objects (bunny/wax, torus/soap, blob/marble, bust/jade) and the 3 held
 # out by benchmarks/nvs_quality.py (torus/marble, bunny/soap, blob/jade): 23 pairs, each VIEWS views x 3 lights
 # (the novel-view subset of a 40 x 24 lattice) at 64 px, 128 spp, with depth maps. Not committed: written to
-# outputs/priors/ (about 1 MB per pair at 10 views), small enough to carry to the GPU machine with the wheels.
+# outputs/priors/ (about 1 MB per pair at 10 views) and packed into outputs/priors.tgz (10 MB), the form that
+# travels to a lent GPU machine beside the wheels (its 64 MiB limit counts the checkout, ~25 MiB, too).
 # Usage: scripts/make_prior_data.sh [PYTHON] [VIEWS]   (VIEWS default 10; Mitsuba, CPU)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -24,4 +25,5 @@ for shape in blob bunny bust sphere torus; do
         seed=$((seed + 1))
     done
 done
-du -sh "$OUT"
+tar czf "$OUT.tgz" -C "$(dirname "$OUT")" "$(basename "$OUT")"  # what a GPU machine is sent
+du -sh "$OUT" "$OUT.tgz"

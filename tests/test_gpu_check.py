@@ -7,7 +7,6 @@ import os
 import sys
 from pathlib import Path
 
-import pytest
 import torch
 from repo_scripts import load_script
 
@@ -49,18 +48,14 @@ import json, sys
 from pathlib import Path
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 args = sys.argv[1:]
-run, steps = Path(args[args.index("--out") + 1]), int(args[args.index("--steps") + 1])
+run = Path(args[args.index("--out") + 1])
 run.mkdir(parents=True, exist_ok=True)
-with open(run / "calls.txt", "a") as f:
-    f.write(f"{steps}\\n")
-with open(run / "train_log.jsonl", "a") as f:
-    for seconds in (0.5, 0.4, 9.0):
-        f.write(json.dumps({"step": steps, "loss": 0.1, "seconds": seconds}) + "\\n")
+(run / "args.json").write_text(json.dumps(args))
 NVSModel(NVSConfig(**json.loads(%r))).save(run / "model")
 """
 
 
-def test_the_nvs_prior_is_timed_then_trained_for_the_steps_that_fit_and_exported_in_fp16(tmp_path):
+def test_the_nvs_prior_trains_for_its_minutes_of_wall_time_and_is_exported_in_fp16(tmp_path):
     from tiny_models import TINY_NVS
 
     from diamond_sss.diffusion.nvs.model import NVSModel
@@ -68,14 +63,21 @@ def test_the_nvs_prior_is_timed_then_trained_for_the_steps_that_fit_and_exported
     script = tmp_path / "fake_cli.py"
     script.write_text(FAKE_FINETUNE % json.dumps(TINY_NVS))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT / "src"), os.environ.get("PYTHONPATH")]))}
-    result = gpu_check.run_nvs_prior([sys.executable, str(script)], [tmp_path / "capture"], 7.0, tmp_path, 120, env)
+    result = gpu_check.run_nvs_prior([sys.executable, str(script)], [tmp_path / "capture"], 7.0, tmp_path, env)
     assert result["exit_code"] == 0 and result["step"] == "nvs-prior"
-    # Median of the timing call's seconds per step (0.5, not the 9 s outlier): 7 min / 0.5 s = 840 -> 800 steps.
-    assert (tmp_path / "nvs_prior_run" / "calls.txt").read_text().split() == ["100", "800"]
+    args = json.loads((tmp_path / "nvs_prior_run" / "args.json").read_text())
+    assert args[args.index("--time-limit-s") + 1] == "420"
+    assert int(args[args.index("--steps") + 1]) == gpu_check.PRIOR_MAX_STEPS
+    assert args[args.index("--data") + 1] == str(tmp_path / "capture")
     exported = NVSModel.load(tmp_path / "nvs_prior_model")
     trained = NVSModel.load(tmp_path / "nvs_prior_run" / "model")
     for (key, a), (_, b) in zip(trained.state_dict().items(), exported.state_dict().items()):
         assert torch.equal(b, a.half().float() if a.is_floating_point() else a), key
-    assert gpu_check.nvs_prior_steps(tmp_path / "nvs_prior_run", 0.01) == gpu_check.TIMING_STEPS
-    with pytest.raises(SystemExit, match="train_log.jsonl: no timed step"):
-        gpu_check.nvs_prior_steps(tmp_path / "no_run", 7.0)
+
+
+def test_the_prior_options_are_ones_finetune_nvs_takes():
+    from diamond_sss.cli.nvs_commands import FinetuneOptions, NVSModelOptions
+
+    fields = set(FinetuneOptions.__dataclass_fields__) | set(NVSModelOptions.__dataclass_fields__)
+    options = [a[2:].replace("-", "_") for a in gpu_check.PRIOR_MODEL if a.startswith("--")]
+    assert {o.removeprefix("no_") for o in options} <= fields

@@ -116,3 +116,27 @@ def test_finetune_resumes_exactly_and_writes_a_loadable_model(objects, tmp_path)
         "step_00000004",
     ]
     NVSModel.load(resumed)
+
+
+def test_a_time_limited_run_stops_checkpointed_and_resumes_to_the_uninterrupted_weights(objects, tmp_path):
+    config = FinetuneConfig(
+        steps=3,
+        objects_per_batch=2,
+        views_per_object=2,
+        warmup_steps=1,
+        checkpoint_every=100,
+        log_every=100,
+        model=NVSConfig(**TINY),
+    )
+    straight = finetune(objects, tmp_path / "straight", config, log=lambda _: None)
+    boxed = FinetuneConfig(**{**config.__dict__, "time_limit_s": 0.0})
+    messages = []
+    stopped = finetune(objects, tmp_path / "boxed", boxed, log=messages.append)
+    assert any("time limit" in m and "step 1" in m for m in messages)
+    assert [p.name for p in (tmp_path / "boxed" / "checkpoints").iterdir()] == ["step_00000001"]
+    assert (tmp_path / "boxed" / "train_log.jsonl").read_text().count("\n") == 1
+    NVSModel.load(stopped)
+    resumed = finetune(objects, tmp_path / "boxed", config, log=lambda _: None)
+    a, b = load_safetensors(straight / "model.safetensors"), load_safetensors(resumed / "model.safetensors")
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], atol=1e-6, rtol=0, msg=key)

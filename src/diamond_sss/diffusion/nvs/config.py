@@ -156,6 +156,8 @@ class FinetuneConfig:
         checkpoint_every: steps between atomic checkpoints.
         keep_checkpoints: newest checkpoints kept.
         log_every: steps between log lines.
+        time_limit_s: stop early, with a checkpoint and the EMA weights written, once this much wall time (s)
+            has passed since the loop started (a time-boxed run: the steps that fit, none lost).
         model: architecture and noise schedule.
     """
 
@@ -171,4 +173,5 @@ class FinetuneConfig:
     checkpoint_every: int = 200
     keep_checkpoints: int = 2
     log_every: int = 25
+    time_limit_s: float | None = None
     model: NVSConfig = field(default_factory=NVSConfig)

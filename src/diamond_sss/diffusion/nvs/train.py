@@ -41,7 +41,9 @@ def finetune(
 ) -> Path:
     """Fine-tune on the fixed-illumination sequences of ``data``; write ``out/model`` (EMA weights).
 
-    Returns the model folder. ``out/train_log.jsonl`` records loss, learning rate and seconds per step.
+    Returns the model folder. ``out/train_log.jsonl`` records loss, learning rate and seconds per step. With
+    ``config.time_limit_s`` the run stops at the first step past that wall time, checkpointed; running it again
+    with the same ``out`` resumes it.
     """
     config = config or FinetuneConfig()
     out = Path(out)
@@ -73,6 +75,7 @@ def finetune(
 
     log_path = out / "train_log.jsonl"
     model.train()
+    started = time.perf_counter()
     while step < config.steps:
         start = time.perf_counter()
         generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
@@ -89,7 +92,8 @@ def finetune(
         optimizer.zero_grad(set_to_none=True)
         ema.update(raw)
         step += 1
-        if step % config.log_every == 0 or step == config.steps:
+        out_of_time = config.time_limit_s is not None and time.perf_counter() - started > config.time_limit_s
+        if step % config.log_every == 0 or step == config.steps or out_of_time:
             record = {
                 "step": step,
                 "loss": loss.item(),
@@ -99,8 +103,11 @@ def finetune(
             with open(log_path, "a") as f:
                 f.write(json.dumps(record) + "\n")
             log(f"step {step}/{config.steps} loss {record['loss']:.4f}")
-        if step % config.checkpoint_every == 0 or step == config.steps:
+        if step % config.checkpoint_every == 0 or step == config.steps or out_of_time:
             save_accelerate_checkpoint(accelerator, out / CHECKPOINTS, step, keep=config.keep_checkpoints)
+        if out_of_time:
+            log(f"time limit of {config.time_limit_s:g} s reached at step {step}")
+            break
 
     with ema.averaged(raw):
         return raw.save(out / "model")
