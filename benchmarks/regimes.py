@@ -77,10 +77,13 @@ def share_value(text: str) -> float | None:
 
 def pipeline_setting(key: str, annotation: str, text: str) -> Any:
     """A --pipeline-set value as the :class:`PipelineConfig` field ``key`` of type ``annotation`` (e.g.
-    ``int | None``) takes it: ``None`` for an optional field, else the field's scalar type."""
+    ``int | None``) takes it: ``None`` for an optional field, a tuple of the comma-separated items for
+    ``tuple[str, ...]`` (``augment=nvs``), else the field's scalar type."""
     scalar = annotation.removesuffix(" | None")
     if text == "None" and scalar != annotation:
         return None
+    if scalar == "tuple[str, ...]":
+        return tuple(item for item in text.split(",") if item)
     try:
         return {"int": int, "float": float}.get(scalar, str)(text)
     except ValueError:
@@ -127,13 +130,13 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     prelim = runs / "sss3dgs"
     if not (prelim / "model.safetensors").is_file():
         run_method("sss3dgs", data, runs, regime, iterations, seed=seed)
-    augment = ("relight",) if method == "+relight" else ("nvs", "relight")
     settings = pipeline_set or {}
     pipeline_keys = {f.name: f.type for f in fields(PipelineConfig)}
-    config = PipelineConfig(augment=augment, prelim_run=str(prelim), min_real_share=real_share,
-                            agreement_power=agreement_power,
-                            **{key: pipeline_setting(key, pipeline_keys[key], value)
-                               for key, value in settings.items() if key in pipeline_keys})
+    given = {key: pipeline_setting(key, pipeline_keys[key], value) for key, value in settings.items()
+             if key in pipeline_keys}
+    given.setdefault("augment", ("relight",) if method == "+relight" else ("nvs", "relight"))
+    config = PipelineConfig(prelim_run=str(prelim), min_real_share=real_share, agreement_power=agreement_power,
+                            **given)
     folder = runs / variant_name(method, real_share, agreement_power, tag)
     training = {key: value for key, value in settings.items() if key not in pipeline_keys}
     metrics = run_pipeline(data, folder, regime=regime, preset="diamond", overrides={**overrides, **training},

@@ -26,6 +26,8 @@ def test_pipeline_settings_take_the_fields_types():
     assert regimes.pipeline_setting("min_real_share", "float | None", "0.7") == 0.7
     assert regimes.pipeline_setting("min_real_share", "float | None", "None") is None
     assert regimes.pipeline_setting("nvs_model", "str | None", "models/nvs") == "models/nvs"
+    assert regimes.pipeline_setting("augment", "tuple[str, ...]", "nvs") == ("nvs",)
+    assert regimes.pipeline_setting("augment", "tuple[str, ...]", "nvs,relight") == ("nvs", "relight")
     with pytest.raises(SystemExit, match="--pipeline-set rounds=many: rounds takes int"):
         regimes.pipeline_setting("rounds", "int", "many")
 
