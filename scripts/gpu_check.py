@@ -10,7 +10,7 @@ Steps, each timed and recorded even when an earlier one failed:
   6. with ``--prior-data``: a larger, 64-px novel-view prior (issue 18's 30-image lever) trained for
      ``--prior-minutes`` of wall time on those captures (``scripts/make_prior_data.sh`` renders them on a CPU
      machine; it also packs them into ``outputs/priors.tgz``, 10 MB, the form to carry to a lent GPU machine and
-     unpack there with ``tar xzf outputs/priors.tgz -C outputs``); the run stops checkpointed at its time limit
+     unpack there: ``scripts/gpu_lease.sh`` does it); the run stops checkpointed at its time limit
      and its EMA weights are written in fp16 to ``<out>/nvs_prior_model`` (12 MiB), for the CPU rows of
      ``benchmarks/regimes.py --pipeline-set nvs_model=...``.
 Writes ``report.json`` and ``report.md`` (plus each step's log) under ``--out``.

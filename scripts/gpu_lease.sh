@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# scripts/gpu_check.py in one call on a lent GPU machine without network (the device tool of environment.md: the
+# checkout and the carried paths travel, 64 MiB in all; what is left in $OUT comes back, at most 8 files).
+# It installs the carried wheels (.whl/), unpacks outputs/priors.tgz when it was carried (scripts/make_prior_data.sh
+# writes it) and then trains the novel-view prior on those captures, runs gpu_check.py with the arguments given,
+# and leaves in $OUT: report.md, the fp16 prior (nvs_prior_model/, when trained) and everything else packed into
+# gpu_check.tgz (logs, report.json, speed tables, the prior's train_log.jsonl).
+# Carry [".whl", "outputs/priors.tgz"] (with the checkout ~53 MiB). Examples:
+#   scripts/gpu_lease.sh --skip suite speed speed-raster train eval --prior-minutes 6   # CUDA tests + the prior
+#   scripts/gpu_lease.sh --skip cuda-tests suite --iterations 10000                      # speed + a 10k demo run
+set -uo pipefail
+cd "$(dirname "$0")/.."
+: "${OUT:?OUT must name the folder whose files come back}"
+wheels="${WHEELS:-.whl}"  # the carried wheels (environment.md)
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$wheels"/*.whl \
+    || { echo "gpu_lease: the wheels in $wheels/ did not install (carry them)" >&2; exit 1; }
+export PYTHONPATH="/tmp/site:$PWD/src" TORCH_EXTENSIONS_DIR=/tmp/torch_extensions
+priors=()
+if [[ -f outputs/priors.tgz ]]; then
+    tar xzf outputs/priors.tgz -C outputs || exit
+    priors=(--prior-data outputs/priors/*)
+fi
+work=/tmp/gpu_check
+mkdir -p "$work"
+python3 scripts/gpu_check.py --out "$work" "${priors[@]}" "$@"
+code=$?
+mkdir -p "$OUT"
+[[ -f "$work/report.md" ]] && cp "$work/report.md" "$OUT/"
+[[ -d "$work/nvs_prior_model" ]] && cp -r "$work/nvs_prior_model" "$OUT/"
+[[ -f "$work/nvs_prior_run/train_log.jsonl" ]] && cp "$work/nvs_prior_run/train_log.jsonl" "$work/nvs_prior_train_log.jsonl"
+tar czf "$OUT/gpu_check.tgz" -C "$work" --exclude nvs_prior_run --exclude nvs_prior_model --exclude demo_run .
+exit "$code"
