@@ -6,8 +6,12 @@ import json
 import math
 
 import imageio.v3 as iio
-import optuna
 import pytest
+
+pytest.importorskip("optuna", reason="needs Optuna (the 'tune' extra)")
+pytest.importorskip("sqlalchemy", reason="needs SQLAlchemy (the 'tune' extra)")
+
+import optuna
 import torch
 from optuna.trial import TrialState
 

@@ -6,8 +6,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import optuna
 import pytest
+
+pytest.importorskip("optuna", reason="needs Optuna (the 'tune' extra)")
+pytest.importorskip("sqlalchemy", reason="needs SQLAlchemy (the 'tune' extra)")
+
+import optuna
 from optuna.trial import TrialState, create_trial
 from repo_scripts import ROOT, assert_stops_naming, load_script
 

@@ -16,8 +16,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import optuna
 import pytest
+
+pytest.importorskip("optuna", reason="needs Optuna (the 'tune' extra)")
+pytest.importorskip("sqlalchemy", reason="needs SQLAlchemy (the 'tune' extra)")
+
+import optuna
 from optuna.trial import TrialState
 
 from diamond_sss.cli.tune_commands import tune
