@@ -90,16 +90,13 @@ def test_gradient_checkpointing_gives_the_same_gradients(objects):
     torch.testing.assert_close(grads[0], grads[1])
 
 
+def tiny_finetune(**settings) -> FinetuneConfig:
+    """A fine-tune of the tiny base model on two objects x two views per step."""
+    return FinetuneConfig(objects_per_batch=2, views_per_object=2, model=NVSConfig(**TINY), **settings)
+
+
 def test_finetune_resumes_exactly_and_writes_a_loadable_model(objects, tmp_path):
-    config = FinetuneConfig(
-        steps=4,
-        objects_per_batch=2,
-        views_per_object=2,
-        warmup_steps=2,
-        checkpoint_every=2,
-        log_every=1,
-        model=NVSConfig(**TINY),
-    )
+    config = tiny_finetune(steps=4, warmup_steps=2, checkpoint_every=2, log_every=1)
     straight = finetune(objects, tmp_path / "straight", config, log=lambda _: None)
     config.steps = 2
     finetune(objects, tmp_path / "resumed", config, log=lambda _: None)
@@ -119,17 +116,9 @@ def test_finetune_resumes_exactly_and_writes_a_loadable_model(objects, tmp_path)
 
 
 def test_a_time_limited_run_stops_checkpointed_and_resumes_to_the_uninterrupted_weights(objects, tmp_path):
-    config = FinetuneConfig(
-        steps=3,
-        objects_per_batch=2,
-        views_per_object=2,
-        warmup_steps=1,
-        checkpoint_every=100,
-        log_every=100,
-        model=NVSConfig(**TINY),
-    )
+    config = tiny_finetune(steps=3, warmup_steps=1, checkpoint_every=100, log_every=100)
     straight = finetune(objects, tmp_path / "straight", config, log=lambda _: None)
-    boxed = FinetuneConfig(**{**config.__dict__, "time_limit_s": 0.0})
+    boxed = tiny_finetune(steps=3, warmup_steps=1, checkpoint_every=100, log_every=100, time_limit_s=0.0)
     messages = []
     stopped = finetune(objects, tmp_path / "boxed", boxed, log=messages.append)
     assert any("time limit" in m and "step 1" in m for m in messages)

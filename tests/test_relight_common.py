@@ -7,7 +7,7 @@ import torch
 
 from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.common.hashing import files_hash, state_dict_hash
-from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
+from diamond_sss.diffusion.common.runtime import Deadline, deterministic_kernels, make_accelerator
 from diamond_sss.diffusion.common.sampling import ddim_sample
 from diamond_sss.diffusion.common.schedulers import SchedulerConfig, make_ddim_scheduler
 from diamond_sss.training.checkpoint import (
@@ -114,3 +114,14 @@ def test_deterministic_kernels_are_scoped_to_the_call():
         body()
     assert seen["inside"] == (True, True)
     assert (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic) == before
+
+
+def test_a_deadline_passes_only_once_its_seconds_are_spent_and_refuses_bad_limits():
+    assert not Deadline(None).passed() and not Deadline(3600.0).passed()
+    spent = Deadline(0.0)
+    while spent.elapsed() <= 0.0:
+        pass
+    assert spent.passed()
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=f"time_limit_s must be a finite number of seconds >= 0 or None, got {bad}"):
+            Deadline(bad)

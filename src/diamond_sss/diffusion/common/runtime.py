@@ -1,9 +1,12 @@
-"""The fine-tuning runtime: one place that makes the ``Accelerator`` and scopes deterministic kernels."""
+"""The fine-tuning runtime: one place that makes the ``Accelerator``, scopes deterministic kernels and keeps a
+run's wall-time limit."""
 
 from __future__ import annotations
 
 import functools
+import math
 import os
+import time
 from collections.abc import Callable
 from typing import ParamSpec, TypeVar
 
@@ -53,3 +56,22 @@ def make_accelerator(mixed_precision: str = "no") -> Accelerator:
                   or (cpu and getattr(state.get("device"), "type", "cpu") != "cpu")):
         AcceleratorState._reset_state(reset_partial_state=True)
     return Accelerator(mixed_precision=mixed_precision, cpu=cpu)
+
+
+class Deadline:
+    """The wall-time limit of a fine-tuning loop (``time_limit_s``, seconds; ``None``: none), counted from its
+    creation."""
+
+    def __init__(self, seconds: float | None) -> None:
+        if seconds is not None and not (math.isfinite(seconds) and seconds >= 0):
+            raise ValueError(f"time_limit_s must be a finite number of seconds >= 0 or None, got {seconds}")
+        self.seconds = seconds
+        self.started = time.perf_counter()
+
+    def elapsed(self) -> float:
+        """Seconds since the loop started."""
+        return time.perf_counter() - self.started
+
+    def passed(self) -> bool:
+        """Whether the limit is spent (never without one)."""
+        return self.seconds is not None and self.elapsed() > self.seconds

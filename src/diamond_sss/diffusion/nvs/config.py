@@ -157,7 +157,7 @@ class FinetuneConfig:
         keep_checkpoints: newest checkpoints kept.
         log_every: steps between log lines.
         time_limit_s: stop early, with a checkpoint and the EMA weights written, once this much wall time (s)
-            has passed since the loop started (a time-boxed run: the steps that fit, none lost).
+            has passed since the fine-tune started, loading included (a time-boxed run: the steps that fit).
         model: architecture and noise schedule.
     """
 

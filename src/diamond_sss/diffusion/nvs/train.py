@@ -16,7 +16,7 @@ import torch
 from diffusers.optimization import get_constant_schedule_with_warmup
 
 from diamond_sss.diffusion.common.ema import EMA
-from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
+from diamond_sss.diffusion.common.runtime import Deadline, deterministic_kernels, make_accelerator
 from diamond_sss.diffusion.common.schedulers import make_ddpm_scheduler
 from diamond_sss.diffusion.nvs.config import FinetuneConfig
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch
@@ -42,10 +42,11 @@ def finetune(
     """Fine-tune on the fixed-illumination sequences of ``data``; write ``out/model`` (EMA weights).
 
     Returns the model folder. ``out/train_log.jsonl`` records loss, learning rate and seconds per step. With
-    ``config.time_limit_s`` the run stops at the first step past that wall time, checkpointed; running it again
-    with the same ``out`` resumes it.
+    ``config.time_limit_s`` the run stops at the first step past that wall time (counted from the call, loading
+    included), checkpointed; running it again with the same ``out`` resumes it.
     """
     config = config or FinetuneConfig()
+    deadline = Deadline(config.time_limit_s)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
@@ -75,7 +76,6 @@ def finetune(
 
     log_path = out / "train_log.jsonl"
     model.train()
-    started = time.perf_counter()
     while step < config.steps:
         start = time.perf_counter()
         generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
@@ -92,7 +92,7 @@ def finetune(
         optimizer.zero_grad(set_to_none=True)
         ema.update(raw)
         step += 1
-        out_of_time = config.time_limit_s is not None and time.perf_counter() - started > config.time_limit_s
+        out_of_time = deadline.passed()
         if step % config.log_every == 0 or step == config.steps or out_of_time:
             record = {
                 "step": step,

@@ -181,7 +181,8 @@ class RelightTrainConfig:
         log_every: steps between log lines.
         seed: seed of initialisation, batches, timesteps and noise.
         mixed_precision: accelerate's ``"no"``, ``"fp16"`` or ``"bf16"`` (GPU).
-        time_limit_s: stop early (checkpoint and weights written) once this much wall time has passed.
+        time_limit_s: stop early (checkpoint and weights written) once this much wall time (s) has passed since
+            the fine-tune started, loading included.
         losses: loss weights.
         augment: mirror / exposure / tint / colour-permutation augmentation of the pairs (``augment.py``).
     """

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import time
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
@@ -14,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from diamond_sss.diffusion.common.ema import EMA
-from diamond_sss.diffusion.common.runtime import deterministic_kernels, make_accelerator
+from diamond_sss.diffusion.common.runtime import Deadline, deterministic_kernels, make_accelerator
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
 from diamond_sss.diffusion.relight.augment import augment_batch
 from diamond_sss.diffusion.relight.config import RelightLossWeights, RelightTrainConfig
@@ -108,6 +107,7 @@ def finetune(
     With ``resume`` the newest complete checkpoint under ``out/checkpoints`` is restored (model, optimizer,
     schedule, EMA) and training continues from its step with the same batches it would have drawn.
     """
+    deadline = Deadline(config.time_limit_s)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "selection.json", views.selection)
@@ -132,7 +132,6 @@ def finetune(
     data = {k: v.to(device) for k, v in asdict_views(views).items()}
     on_device = RelightViews(**data, selection=views.selection)
     model.train()
-    started = time.time()
     for step in range(start, config.steps):
         generator = step_generator(config.seed, step)
         batch = on_device.batch(
@@ -155,14 +154,14 @@ def finetune(
         schedule.step()
         ema.update(unwrapped)
         done = step + 1
-        out_of_time = config.time_limit_s is not None and time.time() - started > config.time_limit_s
+        out_of_time = deadline.passed()
         if done % config.log_every == 0 or done == config.steps or out_of_time:
             record = {
                 "step": done,
                 "loss": float(loss.detach()),
                 **terms,
                 "lr": schedule.get_last_lr()[0],
-                "elapsed_s": time.time() - started,
+                "elapsed_s": deadline.elapsed(),
             }
             with open(out / "log.jsonl", "a") as handle:
                 handle.write(json.dumps(record) + "\n")
