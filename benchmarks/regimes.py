@@ -36,7 +36,7 @@ from diamond_sss.evaluation.evaluate import render_observation
 from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.experiments.ablation import regime_slug
-from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
+from diamond_sss.pipeline.run import PipelineConfig, checked_config, run_pipeline
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
@@ -128,15 +128,15 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
         real = len(json.loads((run / "regime.json").read_text())["observations"])
         return run, {**metrics, "real_images": real, "synthetic_images": 0, "real_share": 1.0}
     prelim = runs / "sss3dgs"
-    if not (prelim / "model.safetensors").is_file():
-        run_method("sss3dgs", data, runs, regime, iterations, seed=seed)
     settings = pipeline_set or {}
     pipeline_keys = {f.name: f.type for f in fields(PipelineConfig)}
     given = {key: pipeline_setting(key, pipeline_keys[key], value) for key, value in settings.items()
              if key in pipeline_keys}
     given.setdefault("augment", ("relight",) if method == "+relight" else ("nvs", "relight"))
-    config = PipelineConfig(prelim_run=str(prelim), min_real_share=real_share, agreement_power=agreement_power,
-                            **given)
+    config = checked_config(PipelineConfig(prelim_run=str(prelim), min_real_share=real_share,
+                                           agreement_power=agreement_power, **given))  # before any training
+    if not (prelim / "model.safetensors").is_file():
+        run_method("sss3dgs", data, runs, regime, iterations, seed=seed)
     folder = runs / variant_name(method, real_share, agreement_power, tag)
     training = {key: value for key, value in settings.items() if key not in pipeline_keys}
     metrics = run_pipeline(data, folder, regime=regime, preset="diamond", overrides={**overrides, **training},

@@ -65,6 +65,13 @@ def test_recorded_reads_a_finished_pipeline_and_skips_an_unfinished_one(tmp_path
                                                   "synthetic_images": 208, "real_share": 0.1261}
 
 
+def test_a_bad_pipeline_setting_stops_before_any_training(tmp_path):
+    with pytest.raises(ValueError, match=r"unknown stage\(s\) \['nvx'\]"):
+        regimes.run_method("full", tmp_path / "capture", tmp_path / "runs", "views=2,lights=1", 10,
+                           pipeline_set={"augment": "nvx"}, tag="bad")
+    assert not (tmp_path / "runs").exists()
+
+
 def test_pipeline_settings_need_a_tag(monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", ["regimes.py", "--pipeline-set", "nvs_views=0"])
     with pytest.raises(SystemExit):

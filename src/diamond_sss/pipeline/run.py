@@ -226,7 +226,8 @@ class PipelineContext:
     show_progress: bool
 
 
-def _checked_config(config: PipelineConfig | None) -> PipelineConfig:
+def checked_config(config: PipelineConfig | None) -> PipelineConfig:
+    """``config`` (default: the defaults) once its values are checked; a bad one is a ``ValueError`` naming the key."""
     cfg = config or PipelineConfig()
     unknown = set(cfg.augment) - set(AUGMENTS)
     if unknown:
@@ -451,7 +452,7 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     (:func:`move_aside_if_changed`) and the run starts afresh. With ``rounds`` = R > 1, rounds 1..R-1 run into
     ``out/round<k>`` first, each the next one's preliminary reconstruction; the last round runs into ``out`` and the
     result lists every round's test PSNR under ``round_psnr``."""
-    cfg = _checked_config(config)
+    cfg = checked_config(config)
     round_psnr = []
     for k in range(1, cfg.rounds):
         result = run_pipeline(data, Path(out) / f"round{k}", split=split, regime=regime, preset=preset,
