@@ -17,7 +17,8 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH="/tmp/site:$PWD/src" TORCH_EXTENSIONS_DIR=/tmp/torch_extensions
 priors=()
 if [[ -f outputs/priors.tgz ]]; then
-    tar xzf outputs/priors.tgz -C outputs || exit
+    tar xzf outputs/priors.tgz -C outputs \
+        || { echo "gpu_lease: outputs/priors.tgz did not unpack (damaged? pack it again: scripts/make_prior_data.sh)" >&2; exit 1; }
     priors=(--prior-data outputs/priors/*)
 fi
 work=/tmp/gpu_check
