@@ -12,7 +12,9 @@ Steps, each timed and recorded even when an earlier one failed:
      machine; it also packs them into ``outputs/priors.tgz``, 10 MB, the form to carry to a lent GPU machine and
      unpack there: ``scripts/gpu_lease.sh`` does it); the run stops checkpointed at its time limit
      and its EMA weights are written in fp16 to ``<out>/nvs_prior_model`` (12 MiB), for the CPU rows of
-     ``benchmarks/regimes.py --pipeline-set nvs_model=...``.
+     ``benchmarks/regimes.py --pipeline-set nvs_model=...``; bf16 autocast by default (``--prior-precision``),
+     and ``--prior-init`` goes on from an earlier lease's prior (fresh optimiser and warm-up), so that 15-minute
+     leases add up.
 Writes ``report.json`` and ``report.md`` (plus each step's log) under ``--out``.
 
     python scripts/gpu_check.py --out gpu_check            # ~10-15 min on an H100
@@ -22,6 +24,7 @@ Writes ``report.json`` and ``report.md`` (plus each step's log) under ``--out``.
         --set sss_light_depth=64   # issue 17's 10k run (the short-run settings)
     python scripts/gpu_check.py --skip build cuda-tests suite speed speed-raster train eval \
         --prior-data outputs/priors/* --prior-minutes 7   # issue 18's novel-view prior
+    ... --prior-init <an earlier lease's nvs_prior_model> # the prior trained on from where it stopped
 """
 
 from __future__ import annotations
@@ -68,13 +71,21 @@ def run_step(name: str, command: list[str], out: Path, timeout: int, env: dict[s
             "tail": output.strip().splitlines()[-15:]}
 
 
-def run_nvs_prior(cli: list[str], data: list[Path], minutes: float, out: Path, env: dict[str, str]) -> dict:
+def run_nvs_prior(cli: list[str], data: list[Path], minutes: float, out: Path, env: dict[str, str],
+                  precision: str = "bf16", init: Path | None = None) -> dict:
     """Train the GPU prior for ``minutes`` of wall time (``finetune-nvs --time-limit-s``: it stops checkpointed at
-    the first step past it) and export its EMA weights in fp16 to ``out/nvs_prior_model``."""
+    the first step past it) in ``precision`` (autocast), from ``init``'s weights when given (an earlier lease's
+    prior, carried back), and export its EMA weights in fp16 to ``out/nvs_prior_model``."""
     run = out / "nvs_prior_run"
     command = cli + ["finetune-nvs", "--out", str(run), "--data", *map(str, data), *PRIOR_MODEL,
-                     "--steps", str(PRIOR_MAX_STEPS), "--time-limit-s", f"{minutes * 60:g}"]
+                     "--steps", str(PRIOR_MAX_STEPS), "--time-limit-s", f"{minutes * 60:g}",
+                     "--mixed-precision", precision, *(["--init-from", str(init)] if init else [])]
     result = run_step("nvs-prior", command, out, int(minutes * 60) + PRIOR_GRACE_S, env)
+    log = run / "train_log.jsonl"
+    if log.is_file() and (records := [json.loads(line) for line in log.read_text().splitlines() if line]):
+        last = records[-1]
+        result["summary"] = (f"{last['step']} steps, loss {last['loss']:.4f}, {last['seconds']:.3f} s at the last "
+                             f"logged step ({precision}{', from ' + str(init) if init else ''})")
     if result["exit_code"] == 0:
         from diamond_sss.diffusion.nvs.model import NVSModel
 
@@ -137,6 +148,11 @@ def main() -> None:
     parser.add_argument("--prior-data", type=Path, nargs="*", default=[],
                         help="captures the novel-view prior trains on (scripts/make_prior_data.sh); none: no prior")
     parser.add_argument("--prior-minutes", type=float, default=7.0, help="training time of the novel-view prior")
+    parser.add_argument("--prior-precision", default="bf16", choices=("no", "bf16", "fp16"),
+                        help="autocast of the prior's training (finetune-nvs --mixed-precision)")
+    parser.add_argument("--prior-init", type=Path, default=None,
+                        help="model folder the prior starts from (an earlier run's nvs_prior_model): its training "
+                             "goes on across leases")
     args = parser.parse_args()
     import torch
 
@@ -145,6 +161,8 @@ def main() -> None:
     missing = [str(path) for path in args.prior_data if not (path / "meta.json").is_file()]
     if missing:
         parser.error(f"--prior-data: not a finished capture (no meta.json): {', '.join(missing)}")
+    if args.prior_init is not None and not (args.prior_init / "config.json").is_file():
+        parser.error(f"--prior-init: {args.prior_init} is not a model folder (no config.json)")
     if not torch.cuda.is_available():
         parser.error("no CUDA GPU (torch.cuda.is_available() is False): this check is for a CUDA machine")
     out = args.out.resolve()
@@ -181,7 +199,8 @@ def main() -> None:
         if name in args.skip or (name == "nvs-prior" and not args.prior_data):
             continue
         if name == "nvs-prior":
-            result = run_nvs_prior(cli, args.prior_data, args.prior_minutes, out, env)
+            result = run_nvs_prior(cli, args.prior_data, args.prior_minutes, out, env, args.prior_precision,
+                                   args.prior_init)
         else:
             result = run_step(name, commands[name], out, args.timeout, env)
         if name in ("cuda-tests", "suite"):

@@ -8,6 +8,14 @@
 # Carry [".whl", "outputs/priors.tgz"] (with the checkout ~53 MiB). Examples:
 #   scripts/gpu_lease.sh --skip suite speed speed-raster train eval --prior-minutes 6   # CUDA tests + the prior
 #   scripts/gpu_lease.sh --skip cuda-tests suite --iterations 10000                      # speed + a 10k demo run
+# Going on with an earlier lease's prior (its nvs_prior_model/, 12 MiB, copied to outputs/nvs_prior_init): the
+# checkout, all wheels, the captures and it exceed 64 MiB, so carry only the wheels the prior needs (~6 MiB: not
+# gsplat, optuna and the database packages, which the steps skipped here need) and
+# carry ["outputs/whl_prior", "outputs/priors.tgz", "outputs/nvs_prior_init"]:
+#   mkdir -p outputs/whl_prior && cp .whl/*.whl outputs/whl_prior/ && \
+#       rm outputs/whl_prior/{gsplat,optuna,sqlalchemy,alembic,greenlet,mako,colorlog}-*.whl
+#   WHEELS=outputs/whl_prior OUT=$OUT scripts/gpu_lease.sh --skip build cuda-tests suite speed speed-raster train eval \
+#       --prior-minutes 8 --prior-init outputs/nvs_prior_init
 set -uo pipefail
 cd "$(dirname "$0")/.."
 : "${OUT:?OUT must name the folder whose files come back}"

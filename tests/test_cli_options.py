@@ -67,6 +67,25 @@ def test_finetune_nvs_options_are_finetune_config_and_nvs_config_fields(tmp_path
     assert seen["config"].model == NVSConfig(space="latent", vae_path=str(tmp_path / "vae"), warp_hint=False)
 
 
+def test_finetune_nvs_from_a_saved_model_takes_its_architecture_unless_told_otherwise(tmp_path, monkeypatch):
+    import diamond_sss.diffusion.nvs.train as nvs_train
+    from diamond_sss.diffusion.nvs.config import NVSConfig
+    from diamond_sss.diffusion.nvs.model import NVSModel
+
+    saved = NVSConfig(image_size=16, block_out_channels=(8, 16, 16), norm_num_groups=4, encoder_channels=(8, 16),
+                      cross_attention_dim=16, embed_dim=16, hint_residual=True, prediction_type="v_prediction")
+    NVSModel(saved).save(tmp_path / "init")
+    seen = {}
+    monkeypatch.setattr(nvs_train, "finetune", lambda data, out, config, **_: seen.update(config=config) or out)
+    base = ["finetune-nvs", "--out", str(tmp_path / "run"), "--data", str(tmp_path), "--init-from",
+            str(tmp_path / "init"), "--mixed-precision", "bf16"]
+    main(base)
+    assert seen["config"].model == saved and seen["config"].init_from == str(tmp_path / "init")
+    assert seen["config"].mixed_precision == "bf16"
+    main([*base, "--layers-per-block", "2"])  # an option given wins (and finetune refuses the mismatch)
+    assert seen["config"].model.layers_per_block == 2 and seen["config"].model.image_size == 16
+
+
 def test_finetune_relight_options_are_train_config_and_model_config_fields(tmp_path, monkeypatch):
     import diamond_sss.diffusion.relight.data as relight_data
     import diamond_sss.diffusion.relight.model as relight_model

@@ -51,6 +51,8 @@ args = sys.argv[1:]
 run = Path(args[args.index("--out") + 1])
 run.mkdir(parents=True, exist_ok=True)
 (run / "args.json").write_text(json.dumps(args))
+(run / "train_log.jsonl").write_text(json.dumps({"step": 20, "loss": 0.5, "seconds": 0.2}) + "\\n"
+                                     + json.dumps({"step": 40, "loss": 0.25, "seconds": 0.125}) + "\\n")
 NVSModel(NVSConfig(**json.loads(%r))).save(run / "model")
 """
 
@@ -63,10 +65,14 @@ def test_the_nvs_prior_trains_for_its_minutes_of_wall_time_and_is_exported_in_fp
     script = tmp_path / "fake_cli.py"
     script.write_text(FAKE_FINETUNE % json.dumps(TINY_NVS))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT / "src"), os.environ.get("PYTHONPATH")]))}
-    result = gpu_check.run_nvs_prior([sys.executable, str(script)], [tmp_path / "capture"], 7.0, tmp_path, env)
+    result = gpu_check.run_nvs_prior([sys.executable, str(script)], [tmp_path / "capture"], 7.0, tmp_path, env,
+                                     init=tmp_path / "earlier_prior")
     assert result["exit_code"] == 0 and result["step"] == "nvs-prior"
+    assert result["summary"].startswith("40 steps, loss 0.2500, 0.125 s at the last logged step (bf16, from ")
     args = json.loads((tmp_path / "nvs_prior_run" / "args.json").read_text())
     assert args[args.index("--time-limit-s") + 1] == "420"
+    assert args[args.index("--mixed-precision") + 1] == "bf16"
+    assert args[args.index("--init-from") + 1] == str(tmp_path / "earlier_prior")
     assert int(args[args.index("--steps") + 1]) == gpu_check.PRIOR_MAX_STEPS
     assert args[args.index("--data") + 1] == str(tmp_path / "capture")
     exported = NVSModel.load(tmp_path / "nvs_prior_model")

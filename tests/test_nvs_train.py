@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 from tiny_models import TINY_NVS
@@ -129,3 +131,37 @@ def test_a_time_limited_run_stops_checkpointed_and_resumes_to_the_uninterrupted_
     a, b = load_safetensors(straight / "model.safetensors"), load_safetensors(resumed / "model.safetensors")
     for key in a:
         torch.testing.assert_close(a[key], b[key], atol=1e-6, rtol=0, msg=key)
+
+
+def test_a_run_starts_from_a_saved_models_weights_and_refuses_another_architecture(objects, tmp_path):
+    torch.manual_seed(5)
+    start = NVSModel(NVSConfig(**TINY)).save(tmp_path / "start")
+    untrained = finetune(objects, tmp_path / "run", tiny_finetune(steps=0, init_from=str(start)), log=lambda _: None)
+    a, b = load_safetensors(start / "model.safetensors"), load_safetensors(untrained / "model.safetensors")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    trained = finetune(objects, tmp_path / "trained", tiny_finetune(steps=2, warmup_steps=1, init_from=str(start)),
+                       log=lambda _: None)
+    moved = load_safetensors(trained / "model.safetensors")
+    assert any(not torch.equal(a[k], moved[k]) for k in a)  # then it trains from there
+    other = tiny_finetune(steps=1, init_from=str(start))
+    other.model = NVSConfig(**{**TINY, "layers_per_block": 2})
+    with pytest.raises(ValueError, match=r"config\.json: another architecture.*layers_per_block 2 here, 1 there"):
+        finetune(objects, tmp_path / "other", other, log=lambda _: None)
+
+
+def test_bf16_autocast_trains_near_the_float32_run(objects, tmp_path):
+    losses = {}
+    for precision in ("no", "bf16"):
+        config = tiny_finetune(steps=1, warmup_steps=1, log_every=1, mixed_precision=precision)
+        finetune(objects, tmp_path / precision, config, log=lambda _: None)
+        losses[precision] = json.loads((tmp_path / precision / "train_log.jsonl").read_text())["loss"]
+    assert losses["bf16"] != losses["no"]  # the forward pass ran in bfloat16
+    assert losses["bf16"] == pytest.approx(losses["no"], rel=0.05)
+
+
+def test_unknown_or_unavailable_precisions_are_refused(objects, tmp_path):
+    with pytest.raises(ValueError, match="mixed_precision must be one of"):
+        finetune(objects, tmp_path / "run", tiny_finetune(steps=1, mixed_precision="fp32"), log=lambda _: None)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="'fp16' needs a CUDA GPU"):
+            finetune(objects, tmp_path / "run", tiny_finetune(steps=1, mixed_precision="fp16"), log=lambda _: None)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Annotated
 
@@ -37,7 +38,7 @@ def finetune_nvs(
         vae: local diffusers AutoencoderKL folder for latent space.
         resume: continue from the newest checkpoint in --out.
         training: fine-tuning settings (FinetuneConfig).
-        model: the model's settings (NVSConfig).
+        model: the model's settings (NVSConfig; with --init-from, the init model's unless given).
     """
     from diamond_sss.data.embedded import FINETUNE_PREFIX, embedded_dataset, embedded_dataset_names
     from diamond_sss.diffusion.nvs.train import finetune
@@ -47,12 +48,30 @@ def finetune_nvs(
         data = [embedded_dataset(n) for n in names]
     if not data:
         raise ValueError("no fine-tuning data: pass --data or install the embedded fine-tuning objects")
-    nvs_config = config_from(NVSConfig, model, vae_path=None if vae is None else str(vae),
-                             warp_hint=model.space == "pixel" if warp_hint is None else warp_hint)
-    config = config_from(FinetuneConfig, training, model=nvs_config)
+    config = config_from(FinetuneConfig, training, model=model_config(model, warp_hint, vae, training.init_from))
     console = Console()
     folder = finetune(data, out, config, resume=resume, log=console.print)
     console.print(f"model -> {folder}")
+
+
+def model_config(options: NVSModelOptions, warp_hint: bool | None, vae: Path | None,
+                 init_from: str | None) -> NVSConfig:
+    """The architecture ``finetune-nvs`` trains: the defaults, or the ``init_from`` model's config, with the
+    model options given on the command line (those that differ from their defaults) on top."""
+    from diamond_sss.diffusion.nvs.model import NVSModel
+
+    defaults = NVSModelOptions()
+    given = {f.name: getattr(options, f.name) for f in dataclasses.fields(options)
+             if getattr(options, f.name) != getattr(defaults, f.name)}
+    if init_from is None:
+        base = NVSConfig(vae_path=None, warp_hint=given.get("space", defaults.space) == "pixel")
+    else:
+        base = NVSModel.read_config(init_from)
+    if warp_hint is not None:
+        given["warp_hint"] = warp_hint
+    if vae is not None:
+        given["vae_path"] = str(vae)
+    return dataclasses.replace(base, **given)
 
 
 def nvs(

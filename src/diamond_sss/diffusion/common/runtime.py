@@ -43,14 +43,23 @@ def deterministic_kernels(fn: Callable[P, R]) -> Callable[P, R]:
     return wrapper
 
 
+MIXED_PRECISIONS = ("no", "fp16", "bf16")
+"""accelerate's autocast settings: none, float16 (CUDA only) and bfloat16."""
+
+
 def make_accelerator(mixed_precision: str = "no") -> Accelerator:
     """An ``Accelerator`` on CUDA when available (else CPU) with ``mixed_precision`` (``no``/``fp16``/``bf16``).
 
     accelerate keeps one process-wide state and refuses a second ``Accelerator`` with another device or
     precision; fine-tunes run one after another in one process (the pipeline, the test suite), so a state
-    left by an earlier one with other settings is cleared first.
+    left by an earlier one with other settings is cleared first. ``fp16`` without CUDA is refused (accelerate
+    would silently train in float32).
     """
     cpu = not torch.cuda.is_available()
+    if mixed_precision not in MIXED_PRECISIONS:
+        raise ValueError(f"mixed_precision must be one of {MIXED_PRECISIONS}, got {mixed_precision!r}")
+    if cpu and mixed_precision == "fp16":
+        raise ValueError("mixed_precision 'fp16' needs a CUDA GPU (none is visible); use 'bf16' or 'no' on the CPU")
     state = AcceleratorState._shared_state
     if state and (state.get("_mixed_precision") != mixed_precision
                   or (cpu and getattr(state.get("device"), "type", "cpu") != "cpu")):

@@ -158,6 +158,10 @@ class FinetuneConfig:
         log_every: steps between log lines.
         time_limit_s: stop early, with a checkpoint and the EMA weights written, once this much wall time (s)
             has passed since the fine-tune started, loading included (a time-boxed run: the steps that fit).
+        mixed_precision: accelerate's ``"no"``, ``"fp16"`` (GPU) or ``"bf16"``: the forward pass in autocast.
+        init_from: a model folder (``finetune-nvs``'s ``model``, ``convert-free3d``'s output) whose weights start
+            the run instead of a random initialisation; its architecture must be ``model``'s. A run resumed from
+            a checkpoint continues from the checkpoint's weights.
         model: architecture and noise schedule.
     """
 
@@ -174,4 +178,6 @@ class FinetuneConfig:
     keep_checkpoints: int = 2
     log_every: int = 25
     time_limit_s: float | None = None
+    mixed_precision: str = "no"
+    init_from: str | None = None
     model: NVSConfig = field(default_factory=NVSConfig)

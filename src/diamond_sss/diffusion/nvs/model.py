@@ -297,6 +297,20 @@ class NVSModel(nn.Module):
         except (TypeError, ValueError) as error:
             raise ValueError(f"{Path(folder) / CONFIG_NAME}: {error}") from error
 
+    def load_weights_from(self, folder: str | Path) -> None:
+        """Copy the weights of the model saved in ``folder`` into this one (the VAE excluded).
+
+        Its config must equal this model's but for ``vae_path`` (where a VAE lives says nothing of the weights);
+        otherwise a ValueError names every key that differs.
+        """
+        saved, ours = asdict(self.read_config(folder)), asdict(self.config)
+        differ = [f"{key} {ours[key]!r} here, {saved[key]!r} there" for key in ours
+                  if key != "vae_path" and ours[key] != saved[key]]
+        if differ:
+            raise ValueError(f"{Path(folder) / CONFIG_NAME}: another architecture than this model's: "
+                             + "; ".join(differ))
+        load_weights(self, folder, skip_prefix="vae.")
+
     @classmethod
     def load(cls, folder: str | Path, vae: AutoencoderKL | None = None) -> NVSModel:
         """Load a model written by :meth:`save`."""

@@ -43,15 +43,18 @@ def finetune(
 
     Returns the model folder. ``out/train_log.jsonl`` records loss, learning rate and seconds per step. With
     ``config.time_limit_s`` the run stops at the first step past that wall time (counted from the call, loading
-    included), checkpointed; running it again with the same ``out`` resumes it.
+    included), checkpointed; running it again with the same ``out`` resumes it. ``config.init_from`` starts a new
+    run from a saved model's weights (the EMA too); a resumed run takes its checkpoint's.
     """
     config = config or FinetuneConfig()
     deadline = Deadline(config.time_limit_s)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
-    accelerator = make_accelerator()
+    accelerator = make_accelerator(config.mixed_precision)
     model = NVSModel(config.model)
+    if config.init_from is not None:
+        model.load_weights_from(config.init_from)
     if config.gradient_checkpointing:
         model.enable_gradient_checkpointing()
     warp = config.model.warp_hint
@@ -81,11 +84,12 @@ def finetune(
         generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
         batch = sample_batch(sequences, config.objects_per_batch, config.views_per_object, generator)
         batch = _to_device(batch, accelerator.device)
-        loss = raw.training_loss(
-            batch,
-            generator=_device_generator(accelerator.device, config.seed, step),
-            scheduler=noise_schedule,
-        )
+        with accelerator.autocast():
+            loss = raw.training_loss(
+                batch,
+                generator=_device_generator(accelerator.device, config.seed, step),
+                scheduler=noise_schedule,
+            )
         accelerator.backward(loss)
         optimizer.step()
         lr_schedule.step()
