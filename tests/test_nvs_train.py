@@ -10,7 +10,7 @@ from tiny_models import TINY_NVS
 
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch
-from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
+from diamond_sss.diffusion.nvs.model import NVSBatch, NVSConfig, NVSModel
 from diamond_sss.diffusion.nvs.train import FinetuneConfig, finetune
 from diamond_sss.utils.io import load_safetensors
 
@@ -165,3 +165,19 @@ def test_unknown_or_unavailable_precisions_are_refused(objects, tmp_path):
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="'fp16' needs a CUDA GPU"):
             finetune(objects, tmp_path / "run", tiny_finetune(steps=1, mixed_precision="fp16"), log=lambda _: None)
+
+
+def test_a_training_step_has_no_data_dependent_shapes():
+    """On the meta device (shapes, no data) the whole loss and its backward pass run: no boolean-mask indexing,
+    nonzero or item() in the step, each of which would make the host wait for the GPU on CUDA."""
+    config = NVSConfig(**{**TINY_NVS, "hint_residual": True})
+    model = NVSModel(config).to("meta")
+    b, v, side = 2, 3, config.warp_source_size
+    eye4, eye3 = torch.eye(4, device="meta"), torch.eye(3, device="meta")
+    batch = NVSBatch(reference=torch.empty(b, 4, side, side, device="meta"), reference_w2c=eye4.expand(b, 4, 4),
+                     target_w2c=eye4.expand(b, v, 4, 4), target_K=eye3.expand(b, v, 3, 3),
+                     targets=torch.empty(b, v, 4, side, side, device="meta"), reference_K=eye3.expand(b, 3, 3),
+                     reference_depth=torch.empty(b, 1, side, side, device="meta"))
+    loss = model.training_loss(batch)
+    loss.backward()
+    assert loss.device.type == "meta" and loss.shape == ()

@@ -122,6 +122,9 @@ def _device_generator(device: torch.device, seed: int, step: int) -> torch.Gener
 
 
 def _to_device(batch, device: torch.device):
+    """The batch's tensors on ``device``; to CUDA through pinned memory without blocking, so that the host goes on
+    queueing the step's kernels instead of waiting for the GPU to reach the copy."""
+    cuda = device.type == "cuda"
     for name in (
         "reference",
         "reference_w2c",
@@ -133,5 +136,5 @@ def _to_device(batch, device: torch.device):
     ):
         value = getattr(batch, name)
         if value is not None:
-            setattr(batch, name, value.to(device))
+            setattr(batch, name, (value.pin_memory() if cuda else value).to(device, non_blocking=cuda))
     return batch

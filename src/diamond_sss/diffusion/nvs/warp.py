@@ -86,15 +86,16 @@ def forward_warp(
         raise ValueError(f"depth_tolerance must be >= 0, got {depth_tolerance}")
     dtype = torch.float64
     z = depth.reshape(-1).to(dtype)
-    source = z > 0
-    uv = pixel_grid(h, w, device=reference.device).reshape(-1, 2).to(dtype)[source]
-    colors = reference.reshape(c, -1)[:, source].to(dtype)
-    points = unproject_pixels(uv, z[source], reference_w2c.to(dtype), reference_K.to(dtype))
+    uv = pixel_grid(h, w, device=reference.device).reshape(-1, 2).to(dtype)
+    colors = reference.reshape(c, -1).to(dtype)
+    points = unproject_pixels(uv, z, reference_w2c.to(dtype), reference_K.to(dtype))
     uv_t, z_t = project_points(points[None], target_w2c.to(dtype), target_K.to(dtype))  # [V,N,2], [V,N]
     cols, rows, weights = _footprint(uv_t, footprint)  # [V,K,N]
     depth_t = z_t[:, None].expand_as(weights)
+    # background pixels (z = 0) are masked, not dropped: no data-dependent shape, so no host sync on CUDA
     inside = (
         (cols >= 0) & (cols < size) & (rows >= 0) & (rows < size) & (depth_t > 0) & (weights > MIN_WEIGHT)
+        & (z > 0)
     )
     view = torch.arange(v, device=reference.device)[:, None, None].expand_as(weights)
     index = torch.where(inside, (view * size + rows) * size + cols, 0).long().reshape(-1)
