@@ -181,3 +181,4 @@ def test_a_training_step_has_no_data_dependent_shapes():
     loss = model.training_loss(batch)
     loss.backward()
     assert loss.device.type == "meta" and loss.shape == ()
+

@@ -11,7 +11,7 @@ from tiny_models import TINY_NVS
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.conventions import intrinsics_matrix
 from diamond_sss.data.embedded import embedded_dataset
-from diamond_sss.diffusion.common.schedulers import make_ddim_scheduler
+from diamond_sss.diffusion.common.schedulers import make_ddim_scheduler, make_ddpm_scheduler
 from diamond_sss.diffusion.geometry import GeometryMaps, GeometrySource, StoredMapsGeometry
 from diamond_sss.diffusion.geometry.base import GeometryError
 from diamond_sss.diffusion.nvs import pipeline
@@ -238,3 +238,28 @@ def test_generation_with_the_warp_hint_needs_metric_depth_and_keys_the_cache_by_
     truth = load_rgba_views(dataset, [1, 3], 0, dataset.width)[0][:, 3]
     overlap = ((hint[:, 3] > 0.5) & (truth > 0.5)).sum() / ((hint[:, 3] > 0.5) | (truth > 0.5)).sum()
     assert hint.shape == (2, 4, 64, 64) and float(overlap) > 0.5
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_a_training_step_on_cuda_never_waits_for_the_gpu():
+    """Batch copy, warp hint, loss and backward pass with CUDA's sync debugging set to raise on any host sync."""
+    from diamond_sss.diffusion.nvs.train import _to_device
+
+    config = NVSConfig(**{**TINY_NVS, "hint_residual": True})
+    model = NVSModel(config).cuda()
+    sequences = fixed_light_sequences([embedded_dataset(OBJECT)], config.warp_source_size, with_depth=True)
+    batch = sample_batch(sequences, 2, 2, torch.Generator().manual_seed(0))
+    generator = torch.Generator(device="cuda").manual_seed(0)
+    scheduler = make_ddpm_scheduler(config.scheduler)  # made once, as the fine-tune does: its tables move once
+    cuda = torch.device("cuda")
+    model.training_loss(_to_device(batch, cuda), generator=generator, scheduler=scheduler).backward()  # warm-up
+    batch = sample_batch(sequences, 2, 2, torch.Generator().manual_seed(1))
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        loss = model.training_loss(_to_device(batch, cuda), generator=generator, scheduler=scheduler)
+        loss.backward()
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert torch.isfinite(loss).item()

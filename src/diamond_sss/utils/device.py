@@ -13,3 +13,12 @@ def resolve_device(name: str) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError("config 'device' asks for CUDA but torch.cuda.is_available() is False")
     return device
+
+
+def to_device(tensor: torch.Tensor, device: torch.device | str) -> torch.Tensor:
+    """``tensor`` on ``device``; a host tensor goes to CUDA through pinned memory without blocking the host (a copy
+    from pageable memory first waits for everything queued on the GPU), so that the host goes on queueing kernels."""
+    device = torch.device(device)
+    if device.type == "cuda" and tensor.device.type == "cpu":
+        return tensor.pin_memory().to(device, non_blocking=True)
+    return tensor.to(device)

@@ -26,6 +26,7 @@ from diamond_sss.training.checkpoint import (
     load_accelerate_checkpoint,
     save_accelerate_checkpoint,
 )
+from diamond_sss.utils.device import to_device
 from diamond_sss.utils.io import atomic_write_json
 
 CHECKPOINTS = "checkpoints"
@@ -122,9 +123,7 @@ def _device_generator(device: torch.device, seed: int, step: int) -> torch.Gener
 
 
 def _to_device(batch, device: torch.device):
-    """The batch's tensors on ``device``; to CUDA through pinned memory without blocking, so that the host goes on
-    queueing the step's kernels instead of waiting for the GPU to reach the copy."""
-    cuda = device.type == "cuda"
+    """The batch's tensors on ``device`` (without blocking the host: :func:`~diamond_sss.utils.device.to_device`)."""
     for name in (
         "reference",
         "reference_w2c",
@@ -136,5 +135,5 @@ def _to_device(batch, device: torch.device):
     ):
         value = getattr(batch, name)
         if value is not None:
-            setattr(batch, name, (value.pin_memory() if cuda else value).to(device, non_blocking=cuda))
+            setattr(batch, name, to_device(value, device))
     return batch

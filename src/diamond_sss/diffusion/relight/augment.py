@@ -24,6 +24,7 @@ from diamond_sss.diffusion.relight.conditioning import image_to_model, model_to_
 from diamond_sss.diffusion.relight.config import RelightAugmentConfig
 from diamond_sss.diffusion.relight.hint import direction_from_code
 from diamond_sss.shading.sh import light_sh_encoding
+from diamond_sss.utils.device import to_device
 
 SOURCE_CHANNELS = slice(0, 3)
 """The source image inside a conditioning image ``[B,8,R,R]``."""
@@ -36,7 +37,7 @@ MAPS_NORMAL_X = 1
 def mirror_code(code: Tensor) -> Tensor:
     """Light code ``[...,10]`` of the light mirrored by ``x -> -x`` in the camera frame."""
     direction, distance = direction_from_code(code)
-    mirrored = direction * torch.tensor([-1.0, 1.0, 1.0], dtype=direction.dtype, device=direction.device)
+    mirrored = torch.cat([-direction[..., :1], direction[..., 1:]], dim=-1)
     return torch.cat([light_sh_encoding(mirrored, degree=2), distance], dim=-1)
 
 
@@ -98,10 +99,10 @@ def augment_batch(
     tint = torch.rand(count, 3, generator=generator) * 2.0 - 1.0
     orders = COLOR_PERMUTATIONS[torch.randint(len(COLOR_PERMUTATIONS), (count,), generator=generator)]
     if config.mirror:
-        batch = mirror_batch(batch, chosen.to(device))
+        batch = mirror_batch(batch, to_device(chosen, device))
     if config.exposure > 0.0 or config.tint > 0.0:
         gains = torch.exp2(config.exposure * exposure) * torch.exp(config.tint * tint)
-        batch = scale_radiance(batch, gains.to(device=device, dtype=batch["target"].dtype))
+        batch = scale_radiance(batch, to_device(gains.to(batch["target"].dtype), device))
     if config.permute_colors:
-        batch = permute_colors(batch, orders)
+        batch = permute_colors(batch, to_device(orders, device))
     return batch

@@ -25,6 +25,7 @@ from diamond_sss.training.checkpoint import (
     load_accelerate_checkpoint,
     save_accelerate_checkpoint,
 )
+from diamond_sss.utils.device import to_device
 from diamond_sss.utils.io import atomic_write_json
 
 
@@ -134,9 +135,7 @@ def finetune(
     model.train()
     for step in range(start, config.steps):
         generator = step_generator(config.seed, step)
-        batch = on_device.batch(
-            *[i.to(device) for i in on_device.random_indices(config.batch_size, generator)]
-        )
+        batch = on_device.batch(*[to_device(i, device) for i in views.random_indices(config.batch_size, generator)])
         batch = augment_batch(batch, config.augment, generator)
         with accelerator.autocast():
             loss, terms = training_loss(
