@@ -12,16 +12,19 @@ Prints a table, writes ``speed.json`` and ``speed.md`` under ``--output``.
     python benchmarks/speed.py                      # CPU, ~3-5 min on 2 cores
     python benchmarks/speed.py --device cuda        # the CUDA targets (needs gsplat's CUDA build)
     python benchmarks/speed.py --counts 5000 --resolutions 64 --repeats 10
+    python benchmarks/speed.py --device cuda --profile   # + operators, kernels and host syncs per step, and where
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import platform
 import statistics
 import tempfile
 import time
+import warnings
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -34,6 +37,8 @@ from diamond_sss.training.overrides import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
 
 RESULTS = Path(__file__).resolve().parent / "results"
+PROFILE_STEPS = 5
+"""Training steps profiled per case with ``--profile``."""
 
 
 def _sync(device: torch.device) -> None:
@@ -41,9 +46,59 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize()
 
 
+def profile_steps(trainer: Trainer, scene, optimizers, state, first: int, steps: int, path: Path) -> dict:
+    """Where ``steps`` training steps from step ``first`` spend their time: torch.profiler's operators by self CPU
+    time (on CUDA also by self CUDA time and the kernels launched), and on CUDA every host sync with its call site
+    (``torch.cuda.set_sync_debug_mode("warn")``: a sync stops the host from queueing ahead of the GPU). Writes the
+    tables to ``path``; returns the counts per step."""
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = trainer.device.type == "cuda"
+    activities = [ProfilerActivity.CPU, *([ProfilerActivity.CUDA] if cuda else [])]
+    syncs: collections.Counter[str] = collections.Counter()
+    with profile(activities=activities) as prof, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        if cuda:
+            torch.cuda.set_sync_debug_mode("warn")
+        try:
+            for step in range(first, first + steps):
+                trainer.training_step(scene, optimizers, state, step)
+            _sync(trainer.device)
+        finally:
+            if cuda:
+                torch.cuda.set_sync_debug_mode("default")
+    for warning in caught:
+        if "synchroniz" in str(warning.message):
+            syncs[f"{Path(warning.filename).name}:{warning.lineno}"] += 1
+    events = prof.events()
+    operators = sum(1 for e in events if e.name.startswith("aten::") and not _nested(e))
+    kernels = sum(1 for e in events if e.device_type == torch.autograd.DeviceType.CUDA)
+    counts = {"operators_per_step": operators / steps, "cuda_kernels_per_step": kernels / steps,
+              "host_syncs_per_step": sum(syncs.values()) / steps}
+    averages = prof.key_averages()
+    sections = [json.dumps(counts), "", "Host syncs (call site: count over the steps):",
+                *(f"  {site}: {n}" for site, n in syncs.most_common()), "",
+                averages.table(sort_by="self_cpu_time_total", row_limit=30)]
+    if cuda:
+        sections.append(averages.table(sort_by="self_cuda_time_total", row_limit=30))
+    path.write_text("\n".join(sections) + "\n")
+    return counts
+
+
+def _nested(event) -> bool:
+    """Whether a profiler event runs inside another operator (only top-level operators are dispatches)."""
+    parent = event.cpu_parent
+    while parent is not None:
+        if parent.name.startswith("aten::"):
+            return True
+        parent = parent.cpu_parent
+    return False
+
+
 def time_case(root: Path, count: int, resolution: int, device: str, repeats: int, steps: int,
-              multiview: bool) -> dict:
-    """Median render forward/backward (ms) and mean training-step time (ms) over ``steps`` steps."""
+              multiview: bool, profile_dir: Path | None = None) -> dict:
+    """Median render forward/backward (ms) and mean training-step time (ms) over ``steps`` steps; with
+    ``profile_dir``, also :func:`profile_steps` of the 5 steps after them."""
     overrides = {"num_gaussians": count, "batch_size": 1, "densify": False, "lambda_lpips": 0.0, "device": device,
                  "log_every": 10_000, "init": "random"}
     if not multiview:
@@ -83,9 +138,14 @@ def time_case(root: Path, count: int, resolution: int, device: str, repeats: int
             trainer.training_step(scene, optimizers, state, step)
         _sync(dev)
         step_ms = 1e3 * (time.perf_counter() - start) / steps
+        profiled = {}
+        if profile_dir is not None:
+            name = f"profile_{device}_{count}x{resolution}_{'mv' if multiview else 'plain'}.txt"
+            profiled = profile_steps(trainer, scene, optimizers, state, warmup + steps, PROFILE_STEPS,
+                                     profile_dir / name)
     return {"device": device, "gaussians": count, "resolution": resolution, "multiview": multiview,
             "render_forward_ms": statistics.median(forward), "render_backward_ms": statistics.median(backward),
-            "train_step_ms": step_ms, "steps_per_second": 1e3 / step_ms, "steps": steps}
+            "train_step_ms": step_ms, "steps_per_second": 1e3 / step_ms, "steps": steps, **profiled}
 
 
 def time_initial_scales(count: int) -> dict:
@@ -110,6 +170,9 @@ def main() -> None:
                         help="CUDA cases as GAUSSIANSxPIXELS")
     parser.add_argument("--scale-points", type=int, default=1_000_000, help="cloud size of the initial-scales row")
     parser.add_argument("--output", type=Path, default=RESULTS)
+    parser.add_argument("--profile", action="store_true",
+                        help="also profile 5 steps per case: operators, CUDA kernels and host syncs per step, and "
+                             "where the time goes (profile_<case>.txt under --output)")
     args = parser.parse_args()
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -125,13 +188,15 @@ def main() -> None:
     elif args.device == "auto":
         print(f"CUDA cases ({', '.join(args.cuda_cases)}) skipped: no CUDA GPU")
     rows = []
+    args.output.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         for device, count, resolution, steps in cases:
             root = Path(tmp) / f"sphere_{resolution}"
             if not root.exists():
                 make_capture(root, views=8, lights=4, size=resolution)
             for multiview in (False, True):
-                rows.append(time_case(root, count, resolution, device, args.repeats, steps, multiview))
+                rows.append(time_case(root, count, resolution, device, args.repeats, steps, multiview,
+                                      args.output if args.profile else None))
                 print(rows[-1], flush=True)
     scales = time_initial_scales(args.scale_points)
     print(scales, flush=True)
@@ -142,6 +207,12 @@ def main() -> None:
         lines.append(f"| {r['device']} | {r['gaussians']} | {r['resolution']} | {'on' if r['multiview'] else 'off'} "
                      f"| {r['render_forward_ms']:.1f} | {r['render_backward_ms']:.1f} | {r['train_step_ms']:.1f} "
                      f"| {r['steps_per_second']:.1f} |")
+    if args.profile:
+        lines += ["", ("| device | Gaussians | px | multi-view losses | operators / step | CUDA kernels / step "
+                       "| host syncs / step |"), "|---|---|---|---|---|---|---|"]
+        lines += [f"| {r['device']} | {r['gaussians']} | {r['resolution']} | {'on' if r['multiview'] else 'off'} "
+                  f"| {r['operators_per_step']:.0f} | {r['cuda_kernels_per_step']:.0f} | {r['host_syncs_per_step']:.1f} |"
+                  for r in rows]
     lines.append("")
     lines.append(f"Initial scales (k-d tree, CPU) of {scales['points']:,} points: {scales['seconds']:.2f} s")
     for r in rows:
@@ -154,7 +225,6 @@ def main() -> None:
     meta = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "torch": torch.__version__,
             "threads": torch.get_num_threads(), "machine": platform.machine(), "processor": platform.processor(),
             "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
-    args.output.mkdir(parents=True, exist_ok=True)
     (args.output / "speed.json").write_text(json.dumps({"meta": meta, "results": rows, "initial_scales": scales},
                                                        indent=2) + "\n")
     (args.output / "speed.md").write_text(f"{json.dumps(meta)}\n\n{table}\n")

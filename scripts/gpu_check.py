@@ -185,7 +185,7 @@ def main() -> None:
         "build": [python, "-c", BUILD],
         "cuda-tests": [python, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider"],
         "suite": [python, "-m", "pytest", "-q", "-p", "no:cacheprovider"],
-        "speed": [python, "benchmarks/speed.py", "--device", "cuda", "--output", str(out)],
+        "speed": [python, "benchmarks/speed.py", "--device", "cuda", "--profile", "--output", str(out)],
         "speed-raster": [python, "benchmarks/speed_raster.py", "--resolutions", "64", "--counts", "10000",
                          "--output", str(out / "speed_raster.json")],
         "train": cli + ["train", "--data", str(demo), "--out", str(run_dir), "--preset", "diamond",
@@ -248,6 +248,12 @@ def markdown(report: dict) -> str:
             lines.append(f"| {r['device']} | {r['gaussians']} | {r['resolution']} | {r['multiview']} "
                          f"| {r['render_forward_ms']:.2f} | {r['render_backward_ms']:.2f} "
                          f"| {r['train_step_ms']:.2f} | {r['steps_per_second']:.1f} |")
+        profiled = [r for r in report["speed"]["results"] if "operators_per_step" in r]
+        if profiled:
+            lines += ["", "| Gaussians | px | multi-view | operators / step | CUDA kernels / step | host syncs / step |",
+                      "|---|---|---|---|---|---|"]
+            lines += [f"| {r['gaussians']} | {r['resolution']} | {r['multiview']} | {r['operators_per_step']:.0f} "
+                      f"| {r['cuda_kernels_per_step']:.0f} | {r['host_syncs_per_step']:.1f} |" for r in profiled]
     if "demo_training" in report:
         t = report["demo_training"]
         rate = t["steps"] / max(t["seconds"], 1e-9)

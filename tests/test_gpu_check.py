@@ -33,7 +33,8 @@ def test_the_report_lists_machine_steps_speed_and_metrics():
                    "summary": "8 passed"}],
         "speed": {"results": [{"device": "cuda", "gaussians": 10000, "resolution": 64, "multiview": True,
                                "render_forward_ms": 1.0, "render_backward_ms": 2.0, "train_step_ms": 5.0,
-                               "steps_per_second": 200.0}]},
+                               "steps_per_second": 200.0, "operators_per_step": 3021.4,
+                               "cuda_kernels_per_step": 2870.0, "host_syncs_per_step": 4.0}]},
         "demo_training": {"steps": 3000, "seconds": 30.0, "num_gaussians": 9000, "final_loss": 0.01},
         "demo_metrics": {"summary": {"psnr": 30.1}},
     }
@@ -41,6 +42,7 @@ def test_the_report_lists_machine_steps_speed_and_metrics():
     assert "NVIDIA H100" in text and "| cuda-tests | 0 | 12.0 | 8 passed |" in text
     assert "| cuda | 10000 | 64 | True | 1.00 | 2.00 | 5.00 | 200.0 |" in text
     assert "100.0 steps/s" in text and '"psnr": 30.1' in text
+    assert "| 10000 | 64 | True | 3021 | 2870 | 4.0 |" in text
 
 
 FAKE_FINETUNE = """
