@@ -8,6 +8,7 @@
 # Carry [".whl", "outputs/priors.tgz"] (with the checkout ~53 MiB). Examples:
 #   scripts/gpu_lease.sh --skip suite speed speed-raster train eval --prior-minutes 6   # CUDA tests + the prior
 #   scripts/gpu_lease.sh --skip cuda-tests suite --iterations 10000                      # speed + a 10k demo run
+#   scripts/gpu_lease.sh --skip cuda-tests suite speed-raster train eval nvs-prior       # speed.py --profile alone
 # Going on with an earlier lease's prior (its nvs_prior_model/, 12 MiB, copied to outputs/nvs_prior_init): the
 # checkout, all wheels, the captures and it exceed 64 MiB, so carry only the wheels the prior needs (~6 MiB: not
 # gsplat, optuna and the database packages, which the steps skipped here need) and
