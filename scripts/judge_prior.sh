@@ -7,8 +7,8 @@
 #   <tag>_norelight  without the relighting stage (--pipeline-set augment=nvs);
 #   <tag>_once       without relighting, each image drawn once at full weight (generated_as_real=102,
 #                    synthetic_weight=1: what lifted true novel views to plain 17-view training).
-# Two runs at a time, one thread each (~1 h on the 2-core CPU; the sss3dgs runs and the diffusion caches of
-# earlier runs are reused). Usage: scripts/judge_prior.sh MODEL_FOLDER [TAG] [PYTHON]
+# The first setting alone (it renders the captures and trains the sss3dgs runs that all three reuse), then the other
+# two side by side, one thread each (~1 h on the 2-core CPU). Usage: scripts/judge_prior.sh MODEL_FOLDER [TAG] [PYTHON]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 MODEL="$(realpath "${1:?usage: scripts/judge_prior.sh MODEL_FOLDER [TAG] [PYTHON]}")"
@@ -26,10 +26,10 @@ regimes() {  # TAG_SUFFIX PIPELINE_SETTINGS...
         --methods full --no-dense --pipeline-set "nvs_model=$MODEL" "$@" --tag "$TAG$suffix" \
         --results "$RESULTS/full$suffix"
 }
-regimes "" &
+regimes ""  # alone: it renders the captures and trains the sss3dgs runs that the other two reuse
 regimes _norelight augment=nvs &
+regimes _once augment=nvs generated_as_real=102 synthetic_weight=1 &
 wait
-regimes _once augment=nvs generated_as_real=102 synthetic_weight=1
 runs=()
 for folder in "${FOLDERS[@]}"; do
     runs+=("outputs/benchmarks/regimes_counts/$folder/views5_lights6/full_$TAG")
