@@ -28,8 +28,11 @@ regimes() {  # TAG_SUFFIX PIPELINE_SETTINGS...
 }
 regimes ""  # alone: it renders the captures and trains the sss3dgs runs that the other two reuse
 regimes _norelight augment=nvs &
+norelight=$!
 regimes _once augment=nvs generated_as_real=102 synthetic_weight=1 &
-wait
+once=$!
+wait "$norelight"  # each wait returns its run's status: set -e stops here if one failed
+wait "$once"
 runs=()
 for folder in "${FOLDERS[@]}"; do
     runs+=("outputs/benchmarks/regimes_counts/$folder/views5_lights6/full_$TAG")
