@@ -89,6 +89,25 @@ def test_points_behind_the_target_camera_or_outside_it_are_dropped():
     assert not bool(valid.any()) and float(warped.abs().max()) == 0.0
 
 
+def test_background_and_unreadable_depths_add_nothing_however_the_colours_read():
+    """Pixels without depth (0, or NaN from a damaged map) are masked, not dropped: they must weigh exactly nothing,
+    even where the image holds NaN there (their masked contributions all land on the first output pixel)."""
+    image = torch.rand(4, 8, 8, generator=torch.Generator().manual_seed(2))
+    depth = torch.full((1, 8, 8), 2.0)
+    depth[0, :, 5:] = 0.0
+    K = intrinsics_matrix(8.0, 8.0, 4.0, 4.0)
+    w2c = torch.eye(4)
+    damaged_image, damaged_depth, hole = image.clone(), depth.clone(), depth.clone()
+    damaged_image[:, :, 5:] = float("nan")
+    damaged_depth[0, 3, 2] = float("nan")
+    hole[0, 3, 2] = 0.0
+    warped, valid = forward_warp(damaged_image, damaged_depth, w2c, K, w2c[None], K[None], 8)
+    expected, expected_valid = forward_warp(image, hole, w2c, K, w2c[None], K[None], 8)
+    assert bool(torch.isfinite(warped).all()) and torch.equal(valid, expected_valid)
+    assert torch.equal(warped, expected) and float(valid[0, 0, 0, 0]) == 1.0 and float(valid[0, 0, 3, 2]) == 0.0
+    torch.testing.assert_close(warped[0][:, valid[0, 0] > 0], image[:, valid[0, 0] > 0], atol=1e-6, rtol=0)
+
+
 def test_resize_depth_min_pools_the_foreground():
     depth = torch.tensor(
         [[[1.0, 2.0, 0.0, 0.0], [3.0, 0.0, 0.0, 0.0], [0.0, 0.0, 5.0, 6.0], [0.0, 0.0, 7.0, 8.0]]]

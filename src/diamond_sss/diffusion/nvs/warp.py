@@ -87,20 +87,20 @@ def forward_warp(
     dtype = torch.float64
     z = depth.reshape(-1).to(dtype)
     uv = pixel_grid(h, w, device=reference.device).reshape(-1, 2).to(dtype)
-    colors = reference.reshape(c, -1).to(dtype)
+    source = z > 0  # background pixels (z = 0, or not a number) are masked, not dropped: no data-dependent
+    colors = torch.where(source, reference.reshape(c, -1).to(dtype), 0.0)  # shape, so no host sync on CUDA
     points = unproject_pixels(uv, z, reference_w2c.to(dtype), reference_K.to(dtype))
     uv_t, z_t = project_points(points[None], target_w2c.to(dtype), target_K.to(dtype))  # [V,N,2], [V,N]
     cols, rows, weights = _footprint(uv_t, footprint)  # [V,K,N]
     depth_t = z_t[:, None].expand_as(weights)
-    # background pixels (z = 0) are masked, not dropped: no data-dependent shape, so no host sync on CUDA
     inside = (
         (cols >= 0) & (cols < size) & (rows >= 0) & (rows < size) & (depth_t > 0) & (weights > MIN_WEIGHT)
-        & (z > 0)
+        & source
     )
     view = torch.arange(v, device=reference.device)[:, None, None].expand_as(weights)
     index = torch.where(inside, (view * size + rows) * size + cols, 0).long().reshape(-1)
     depth_t = torch.where(inside, depth_t, torch.inf).reshape(-1)
-    weights = (weights * inside).reshape(-1)
+    weights = torch.where(inside, weights, 0.0).reshape(-1)
     nearest = torch.full((v * size * size,), torch.inf, dtype=dtype, device=reference.device)
     nearest = nearest.scatter_reduce(0, index, depth_t, "amin")
     keep = weights * (depth_t <= nearest[index] * (1 + depth_tolerance))
