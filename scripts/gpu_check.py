@@ -84,9 +84,7 @@ def run_nvs_prior(cli: list[str], data: list[Path], minutes: float, out: Path, e
                      "--steps", str(PRIOR_MAX_STEPS), "--time-limit-s", f"{minutes * 60:g}",
                      "--mixed-precision", precision, *(["--init-from", str(init)] if init else [])]
     result = run_step("nvs-prior", command, out, int(minutes * 60) + PRIOR_GRACE_S, env)
-    log = run / "train_log.jsonl"
-    if log.is_file() and (records := [json.loads(line) for line in log.read_text().splitlines() if line]):
-        last = records[-1]
+    if (last := last_log_record(run / "train_log.jsonl")) is not None:
         result["summary"] = (f"{last['step']} steps, loss {last['loss']:.4f}, {last['seconds']:.3f} s at the last "
                              f"logged step ({precision}{', from ' + str(init) if init else ''})")
     if result["exit_code"] == 0:
@@ -95,6 +93,20 @@ def run_nvs_prior(cli: list[str], data: list[Path], minutes: float, out: Path, e
         NVSModel.load(run / "model").save(out / "nvs_prior_model", half=True)
         result["tail"].append(f"fp16 model -> {out / 'nvs_prior_model'}")
     return result
+
+
+def last_log_record(path: Path) -> dict | None:
+    """The last complete record of a JSON-lines log (a line cut short by a killed run is skipped), or None."""
+    if not path.is_file():
+        return None
+    for line in reversed(path.read_text(errors="replace").splitlines()):
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(record, dict) and {"step", "loss", "seconds"} <= record.keys():
+            return record
+    return None
 
 
 def pytest_counts(lines: list[str]) -> str:

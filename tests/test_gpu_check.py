@@ -89,3 +89,12 @@ def test_the_prior_options_are_ones_finetune_nvs_takes():
     fields = set(FinetuneOptions.__dataclass_fields__) | set(NVSModelOptions.__dataclass_fields__)
     options = [a[2:].replace("-", "_") for a in gpu_check.PRIOR_MODEL if a.startswith("--")]
     assert {o.removeprefix("no_") for o in options} <= fields
+
+
+def test_the_prior_summary_reads_past_a_log_line_cut_short(tmp_path):
+    log = tmp_path / "train_log.jsonl"
+    assert gpu_check.last_log_record(log) is None
+    log.write_text(json.dumps({"step": 20, "loss": 0.5, "seconds": 0.2}) + "\n" + '{"step": 40, "lo')
+    assert gpu_check.last_log_record(log) == {"step": 20, "loss": 0.5, "seconds": 0.2}
+    log.write_text("not json\n")
+    assert gpu_check.last_log_record(log) is None
