@@ -147,6 +147,7 @@ def test_a_run_starts_from_a_saved_models_weights_and_refuses_another_architectu
     other.model = NVSConfig(**{**TINY, "layers_per_block": 2})
     with pytest.raises(ValueError, match=r"config\.json: another architecture.*layers_per_block 2 here, 1 there"):
         finetune(objects, tmp_path / "other", other, log=lambda _: None)
+    assert not (tmp_path / "other").exists()
 
 
 def test_bf16_autocast_trains_near_the_float32_run(objects, tmp_path):
@@ -162,6 +163,7 @@ def test_bf16_autocast_trains_near_the_float32_run(objects, tmp_path):
 def test_unknown_or_unavailable_precisions_are_refused(objects, tmp_path):
     with pytest.raises(ValueError, match="mixed_precision must be one of"):
         finetune(objects, tmp_path / "run", tiny_finetune(steps=1, mixed_precision="fp32"), log=lambda _: None)
+    assert not (tmp_path / "run").exists()
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="'fp16' needs a CUDA GPU"):
             finetune(objects, tmp_path / "run", tiny_finetune(steps=1, mixed_precision="fp16"), log=lambda _: None)

@@ -50,12 +50,12 @@ def finetune(
     config = config or FinetuneConfig()
     deadline = Deadline(config.time_limit_s)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
     accelerator = make_accelerator(config.mixed_precision)
     model = NVSModel(config.model)
     if config.init_from is not None:
         model.load_weights_from(config.init_from)
+    out.mkdir(parents=True, exist_ok=True)  # after what can be refused: a refused run leaves no folder behind
     if config.gradient_checkpointing:
         model.enable_gradient_checkpointing()
     warp = config.model.warp_hint
