@@ -259,26 +259,49 @@ def test_generation_with_the_warp_hint_needs_metric_depth_and_keys_the_cache_by_
     assert hint.shape == (2, 4, 64, 64) and float(overlap) > 0.5
 
 
+def test_camera_geometry_stays_float32_under_bf16_autocast(warp_batch):
+    """The fine-tune's ``--mixed-precision bf16``: rays, pose and warp hint as in float32, and the loss trains."""
+    torch.manual_seed(0)
+    model = NVSModel(NVSConfig(**TINY_NVS, hint_residual=True))
+    reference = model.encode(warp_batch.reference)
+    full = (*model.conditioning(warp_batch, reference), model.warp_hint(warp_batch))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        mixed = (*model.conditioning(warp_batch, reference), model.warp_hint(warp_batch))
+        loss = model.training_loss(warp_batch, generator=torch.Generator().manual_seed(0))
+    for a, b in zip(full, mixed, strict=True):
+        assert b.dtype == torch.float32
+        torch.testing.assert_close(a, b, atol=0, rtol=0)
+    loss.backward()
+    assert torch.isfinite(loss) and model.unet.conv_in.weight.grad.abs().sum() > 0
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
-def test_a_training_step_on_cuda_never_waits_for_the_gpu():
-    """Batch copy, warp hint, loss and backward pass with CUDA's sync debugging set to raise on any host sync."""
+@pytest.mark.parametrize("precision", [None, torch.bfloat16], ids=["float32", "bf16"])
+def test_a_training_step_on_cuda_never_waits_for_the_gpu(precision):
+    """Batch copy, warp hint, loss and backward pass with CUDA's sync debugging set to raise on any host sync,
+    in float32 and in the prior's bf16 autocast."""
     from diamond_sss.diffusion.nvs.train import _to_device
 
     config = NVSConfig(**{**TINY_NVS, "hint_residual": True})
     model = NVSModel(config).cuda()
     sequences = fixed_light_sequences([embedded_dataset(OBJECT)], config.warp_source_size, with_depth=True)
-    batch = sample_batch(sequences, 2, 2, torch.Generator().manual_seed(0))
     generator = torch.Generator(device="cuda").manual_seed(0)
     scheduler = make_ddpm_scheduler(config.scheduler)  # made once, as the fine-tune does: its tables move once
     cuda = torch.device("cuda")
-    model.training_loss(_to_device(batch, cuda), generator=generator, scheduler=scheduler).backward()  # warm-up
-    batch = sample_batch(sequences, 2, 2, torch.Generator().manual_seed(1))
+
+    def step(seed: int) -> torch.Tensor:
+        batch = sample_batch(sequences, 2, 2, torch.Generator().manual_seed(seed))
+        with torch.autocast("cuda", dtype=precision or torch.float32, enabled=precision is not None):
+            loss = model.training_loss(_to_device(batch, cuda), generator=generator, scheduler=scheduler)
+        loss.backward()
+        return loss
+
+    step(0)  # warm-up
     torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")
     try:
-        loss = model.training_loss(_to_device(batch, cuda), generator=generator, scheduler=scheduler)
-        loss.backward()
+        loss = step(1)
     finally:
         torch.cuda.set_sync_debug_mode("default")
     assert torch.isfinite(loss).item()

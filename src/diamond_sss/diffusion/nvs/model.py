@@ -12,6 +12,7 @@ sample at sampling time. Space: ``pixel`` (RGBA in ``[-1, 1]``, the small offlin
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -88,6 +89,15 @@ class NVSBatch:
             raise ValueError(
                 f"reference_depth must be [B,1,H,W] like the reference, got {tuple(self.reference_depth.shape)}"
             )
+
+
+def full_precision(like: Tensor) -> AbstractContextManager:
+    """Autocast switched off on ``like``'s device: camera geometry (matrix inverses, projections to pixels) stays
+    float32 when the fine-tune runs the network in bf16/fp16. Nothing to switch off on devices without autocast
+    (``meta``)."""
+    if not torch.amp.is_autocast_available(like.device.type):
+        return nullcontext()
+    return torch.autocast(like.device.type, enabled=False)
 
 
 class NVSModel(nn.Module):
@@ -169,8 +179,9 @@ class NVSModel(nn.Module):
         factor = h / batch.reference.shape[-1]
         K = scale_intrinsics(batch.target_K, factor)
         ref = batch.reference_w2c[:, None].expand(b, v, 4, 4)
-        rays = ray_embedding(batch.target_w2c, ref, K, h, h).flatten(0, 1)
-        pose = relative_spherical_pose(batch.target_w2c, ref).flatten(0, 1)
+        with full_precision(ref):
+            rays = ray_embedding(batch.target_w2c, ref, K, h, h).flatten(0, 1)
+            pose = relative_spherical_pose(batch.target_w2c, ref).flatten(0, 1)
         return rays.to(reference_model.dtype), pose.to(reference_model.dtype)
 
     def warp_hint(self, batch: NVSBatch) -> Tensor | None:
@@ -186,28 +197,29 @@ class NVSModel(nn.Module):
                 "this novel-view model uses the warp hint: the batch needs reference_K and reference_depth "
                 "(metric camera z of the reference view)"
             )
-        source = self.config.warp_source_size
-        factor = source / batch.reference.shape[-1]
-        reference = batch.reference
-        if reference.shape[-2:] != (source, source):
-            reference = F.interpolate(reference, size=(source, source), mode="area")
-        depth = resize_depth(batch.reference_depth, source)
-        ref_K = scale_intrinsics(batch.reference_K, factor)
-        size = self.config.image_size
-        target_K = scale_intrinsics(batch.target_K, size / batch.reference.shape[-1])
-        hints = []
-        for i in range(reference.shape[0]):
-            warped, valid = forward_warp(
-                reference[i],
-                depth[i],
-                batch.reference_w2c[i],
-                ref_K[i],
-                batch.target_w2c[i],
-                target_K[i],
-                size,
-            )
-            hints.append(torch.cat([warped * 2 - 1, valid], dim=1))
-        return torch.cat(hints)
+        with full_precision(batch.reference):
+            source = self.config.warp_source_size
+            factor = source / batch.reference.shape[-1]
+            reference = batch.reference
+            if reference.shape[-2:] != (source, source):
+                reference = F.interpolate(reference, size=(source, source), mode="area")
+            depth = resize_depth(batch.reference_depth, source)
+            ref_K = scale_intrinsics(batch.reference_K, factor)
+            size = self.config.image_size
+            target_K = scale_intrinsics(batch.target_K, size / batch.reference.shape[-1])
+            hints = []
+            for i in range(reference.shape[0]):
+                warped, valid = forward_warp(
+                    reference[i],
+                    depth[i],
+                    batch.reference_w2c[i],
+                    ref_K[i],
+                    batch.target_w2c[i],
+                    target_K[i],
+                    size,
+                )
+                hints.append(torch.cat([warped * 2 - 1, valid], dim=1))
+            return torch.cat(hints)
 
     def context(self, image_embedding: Tensor, pose: Tensor, drop_image: Tensor) -> Tensor:
         """Context token ``proj([embedding or null, pose])``, ``[N,1,D]``; ``drop_image [N]`` bool."""

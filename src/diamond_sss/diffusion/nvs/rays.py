@@ -26,10 +26,14 @@ def _check_matrix(name: str, tensor: Tensor, size: int) -> None:
 
 
 def relative_w2c(target_w2c: Tensor, reference_w2c: Tensor) -> Tensor:
-    """Target camera expressed in the reference camera's frame: ``w2c_t @ inv(w2c_r)``. ``[...,4,4]``."""
+    """Target camera expressed in the reference camera's frame: ``w2c_t @ inv(w2c_r)``. ``[...,4,4]``.
+
+    Inverses here use ``linalg.inv_ex``: ``linalg.inv`` checks for singular matrices on the host, which makes every
+    CUDA training step wait for the GPU.
+    """
     _check_matrix("target_w2c", target_w2c, 4)
     _check_matrix("reference_w2c", reference_w2c, 4)
-    return target_w2c @ torch.linalg.inv(reference_w2c)
+    return target_w2c @ torch.linalg.inv_ex(reference_w2c).inverse
 
 
 def plucker_rays(target_w2c: Tensor, reference_w2c: Tensor, K: Tensor, height: int, width: int) -> Tensor:
@@ -46,7 +50,7 @@ def plucker_rays(target_w2c: Tensor, reference_w2c: Tensor, K: Tensor, height: i
     K = K.to(rel.dtype)
     uv = pixel_grid(height, width, device=K.device).to(K.dtype).reshape(-1, 2)
     pix = torch.cat([uv, torch.ones_like(uv[:, :1])], dim=-1)  # [HW,3]
-    cam_dirs = pix @ torch.linalg.inv(K).transpose(-1, -2)  # [...,HW,3]
+    cam_dirs = pix @ torch.linalg.inv_ex(K).inverse.transpose(-1, -2)  # [...,HW,3]
     dirs = cam_dirs @ rel[..., :3, :3]  # R^T d for row vectors
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
     center = camera_centers(rel)[..., None, :].expand_as(dirs)
