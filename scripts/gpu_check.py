@@ -218,8 +218,8 @@ def main() -> None:
                                    args.prior_init)
         else:
             result = run_step(name, commands[name], out, args.timeout, env)
-        if name in ("cuda-tests", "suite"):
-            result["summary"] = pytest_counts(result["tail"])
+        if summary := step_summary(name, result, out):
+            result["summary"] = summary
         report["steps"].append(result)
         atomic_json(out / "report.json", report)
     speed = out / "speed.json"
@@ -238,6 +238,16 @@ def main() -> None:
     failed = [s["step"] for s in report["steps"] if s["exit_code"] != 0]
     if failed:
         raise SystemExit(f"gpu-check: failed steps: {', '.join(failed)} (logs in {out})")
+
+
+def step_summary(name: str, result: dict, out: Path) -> str | None:
+    """The report's line for a test or speed step (pytest's counts; the cases ``speed.py`` measured, whose log ends
+    on profiler warnings); None to show the log's last line."""
+    if name in ("cuda-tests", "suite"):
+        return pytest_counts(result["tail"])
+    if name == "speed" and result["exit_code"] == 0 and (out / "speed.json").is_file():
+        return f"{len(json.loads((out / 'speed.json').read_text())['results'])} cases (tables below)"
+    return None
 
 
 def atomic_json(path: Path, value: dict) -> None:

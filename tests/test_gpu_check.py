@@ -45,6 +45,15 @@ def test_the_report_lists_machine_steps_speed_and_metrics():
     assert "| 10000 | 64 | True | 3021 | 2870 | 4.0 |" in text
 
 
+def test_a_speed_step_is_summarised_by_its_cases_not_its_last_log_line(tmp_path):
+    result = {"step": "speed", "exit_code": 0, "tail": ["[W] called a synchronizing CUDA operation"]}
+    assert gpu_check.step_summary("speed", result, tmp_path) is None  # no speed.json: the log's last line
+    (tmp_path / "speed.json").write_text(json.dumps({"results": [{"device": "cuda"}, {"device": "cuda"}]}))
+    assert gpu_check.step_summary("speed", result, tmp_path) == "2 cases (tables below)"
+    assert gpu_check.step_summary("speed", {**result, "exit_code": 1}, tmp_path) is None
+    assert gpu_check.step_summary("suite", {"tail": ["3 passed, 1 skipped in 2.0s"]}, tmp_path) == "3 passed, 1 skipped in 2.0s"
+
+
 FAKE_FINETUNE = """
 import json, sys
 from pathlib import Path
