@@ -18,13 +18,11 @@ Prints a table, writes ``speed.json`` and ``speed.md`` under ``--output``.
 from __future__ import annotations
 
 import argparse
-import collections
 import json
 import platform
 import statistics
 import tempfile
 import time
-import warnings
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -35,64 +33,11 @@ from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.gaussians.model import nearest_neighbor_scales
 from diamond_sss.training.overrides import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
+from diamond_sss.utils.profiling import profile_steps, synchronize
 
 RESULTS = Path(__file__).resolve().parent / "results"
 PROFILE_STEPS = 5
 """Training steps profiled per case with ``--profile``."""
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-
-
-def profile_steps(trainer: Trainer, scene, optimizers, state, first: int, steps: int, path: Path) -> dict:
-    """Where ``steps`` training steps from step ``first`` spend their time: torch.profiler's operators by self CPU
-    time (on CUDA also by self CUDA time and the kernels launched), and on CUDA every host sync with its call site
-    (``torch.cuda.set_sync_debug_mode("warn")``: a sync stops the host from queueing ahead of the GPU). Writes the
-    tables to ``path``; returns the counts per step."""
-    from torch.profiler import ProfilerActivity, profile
-
-    cuda = trainer.device.type == "cuda"
-    activities = [ProfilerActivity.CPU, *([ProfilerActivity.CUDA] if cuda else [])]
-    syncs: collections.Counter[str] = collections.Counter()
-    with profile(activities=activities) as prof, warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        if cuda:
-            torch.cuda.set_sync_debug_mode("warn")
-        try:
-            for step in range(first, first + steps):
-                trainer.training_step(scene, optimizers, state, step)
-            _sync(trainer.device)
-        finally:
-            if cuda:
-                torch.cuda.set_sync_debug_mode("default")
-    for warning in caught:
-        if "synchroniz" in str(warning.message):
-            syncs[f"{Path(warning.filename).name}:{warning.lineno}"] += 1
-    events = prof.events()
-    operators = sum(1 for e in events if e.name.startswith("aten::") and not _nested(e))
-    kernels = sum(1 for e in events if e.device_type == torch.autograd.DeviceType.CUDA)
-    counts = {"operators_per_step": operators / steps, "cuda_kernels_per_step": kernels / steps,
-              "host_syncs_per_step": sum(syncs.values()) / steps}
-    averages = prof.key_averages()
-    sections = [json.dumps(counts), "", "Host syncs (call site: count over the steps):",
-                *(f"  {site}: {n}" for site, n in syncs.most_common()), "",
-                averages.table(sort_by="self_cpu_time_total", row_limit=30)]
-    if cuda:
-        sections.append(averages.table(sort_by="self_cuda_time_total", row_limit=30))
-    path.write_text("\n".join(sections) + "\n")
-    return counts
-
-
-def _nested(event) -> bool:
-    """Whether a profiler event runs inside another operator (only top-level operators are dispatches)."""
-    parent = event.cpu_parent
-    while parent is not None:
-        if parent.name.startswith("aten::"):
-            return True
-        parent = parent.cpu_parent
-    return False
 
 
 def time_case(root: Path, count: int, resolution: int, device: str, repeats: int, steps: int,
@@ -117,13 +62,13 @@ def time_case(root: Path, count: int, resolution: int, device: str, repeats: int
         args = (cam.w2c[None].to(dev), cam.K[None].to(dev), cam.width, cam.height, light.position[None].to(dev),
                 light.intensity[None].to(dev))
         for k in range(repeats + 1):
-            _sync(dev)
+            synchronize(dev)
             start = time.perf_counter()
             render = scene.render(*args)
-            _sync(dev)
+            synchronize(dev)
             middle = time.perf_counter()
             render.radiance.sum().backward()
-            _sync(dev)
+            synchronize(dev)
             end = time.perf_counter()
             scene.zero_grad(set_to_none=True)
             if k > 0:
@@ -132,17 +77,17 @@ def time_case(root: Path, count: int, resolution: int, device: str, repeats: int
         warmup = max(2, cfg.raytrace.every)
         for step in range(warmup):
             trainer.training_step(scene, optimizers, state, step)
-        _sync(dev)
+        synchronize(dev)
         start = time.perf_counter()
         for step in range(warmup, warmup + steps):
             trainer.training_step(scene, optimizers, state, step)
-        _sync(dev)
+        synchronize(dev)
         step_ms = 1e3 * (time.perf_counter() - start) / steps
         profiled = {}
         if profile_dir is not None:
             name = f"profile_{device}_{count}x{resolution}_{'mv' if multiview else 'plain'}.txt"
-            profiled = profile_steps(trainer, scene, optimizers, state, warmup + steps, PROFILE_STEPS,
-                                     profile_dir / name)
+            profiled = profile_steps(lambda i: trainer.training_step(scene, optimizers, state, i), dev,
+                                     warmup + steps, PROFILE_STEPS, profile_dir / name)
     return {"device": device, "gaussians": count, "resolution": resolution, "multiview": multiview,
             "render_forward_ms": statistics.median(forward), "render_backward_ms": statistics.median(backward),
             "train_step_ms": step_ms, "steps_per_second": 1e3 / step_ms, "steps": steps, **profiled}

@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from diamond_sss.rendering import rasterize
+from diamond_sss.utils.profiling import synchronize
 
 RESULTS = Path(__file__).resolve().parent / "results" / "speed_raster.json"
 
@@ -45,24 +46,19 @@ def make_scene(n: int, resolution: int, channels: int, device: str, seed: int = 
     return params, viewmats.to(device), Ks.to(device)
 
 
-def _sync(device: str) -> None:
-    if device == "cuda":
-        torch.cuda.synchronize()
-
-
 def time_case(n: int, resolution: int, channels: int, device: str, repeats: int, warmup: int) -> dict:
     """Median wall-clock forward and backward times (ms) of one configuration."""
     params, viewmats, Ks = make_scene(n, resolution, channels, device)
     forward, backward = [], []
     for step in range(warmup + repeats):
-        _sync(device)
+        synchronize(torch.device(device))
         start = time.perf_counter()
         out = rasterize(*params, viewmats, Ks, resolution, resolution)
         loss = out.features.square().mean() + out.depth.mean() + out.alpha.mean()
-        _sync(device)
+        synchronize(torch.device(device))
         middle = time.perf_counter()
         loss.backward()
-        _sync(device)
+        synchronize(torch.device(device))
         end = time.perf_counter()
         for p in params:
             p.grad = None

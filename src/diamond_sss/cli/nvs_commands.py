@@ -40,12 +40,11 @@ def finetune_nvs(
         training: fine-tuning settings (FinetuneConfig).
         model: the model's settings (NVSConfig; with --init-from, the init model's unless given).
     """
-    from diamond_sss.data.embedded import FINETUNE_PREFIX, embedded_dataset, embedded_dataset_names
+    from diamond_sss.data.embedded import embedded_dataset, finetune_object_names
     from diamond_sss.diffusion.nvs.train import finetune
 
     if data is None:
-        names = [n for n in embedded_dataset_names() if n.startswith(FINETUNE_PREFIX)]
-        data = [embedded_dataset(n) for n in names]
+        data = [embedded_dataset(n) for n in finetune_object_names()]
     if not data:
         raise ValueError("no fine-tuning data: pass --data or install the embedded fine-tuning objects")
     config = config_from(FinetuneConfig, training, model=model_config(model, warp_hint, vae, training.init_from))

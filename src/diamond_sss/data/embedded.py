@@ -31,3 +31,8 @@ def embedded_dataset_names() -> list[str]:
     if not root.is_dir():
         return []
     return sorted(str(p.parent.relative_to(root)) for p in root.rglob("transforms_train.json"))
+
+
+def finetune_object_names() -> list[str]:
+    """Names of the embedded fine-tuning objects (``finetune/<object>``), the diffusion models' default data."""
+    return [n for n in embedded_dataset_names() if n.startswith(FINETUNE_PREFIX)]

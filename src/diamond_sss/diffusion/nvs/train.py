@@ -9,18 +9,26 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
+from accelerate import Accelerator
+from diffusers import DDPMScheduler
 from diffusers.optimization import get_constant_schedule_with_warmup
+from torch import Tensor
 
 from diamond_sss.diffusion.common.ema import EMA
-from diamond_sss.diffusion.common.runtime import Deadline, deterministic_kernels, make_accelerator
+from diamond_sss.diffusion.common.runtime import (
+    Deadline,
+    deterministic_kernels,
+    fused_adamw,
+    make_accelerator,
+)
 from diamond_sss.diffusion.common.schedulers import make_ddpm_scheduler
 from diamond_sss.diffusion.nvs.config import FinetuneConfig
-from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch
-from diamond_sss.diffusion.nvs.model import NVSModel
+from diamond_sss.diffusion.nvs.data import Sequence, fixed_light_sequences, sample_batch
+from diamond_sss.diffusion.nvs.model import NVSBatch, NVSModel
 from diamond_sss.training.checkpoint import (
     latest_accelerate_checkpoint,
     load_accelerate_checkpoint,
@@ -30,6 +38,69 @@ from diamond_sss.utils.device import to_device
 from diamond_sss.utils.io import atomic_write_json
 
 CHECKPOINTS = "checkpoints"
+
+
+@dataclass
+class TrainingState:
+    """What the steps of a fine-tune read and update, on ``accelerator.device``: the model as accelerate prepared it
+    and the module itself (``raw``), optimiser, learning-rate schedule, EMA of the weights, the DDPM noise schedule
+    and the training sequences (on the host)."""
+
+    accelerator: Accelerator
+    model: torch.nn.Module
+    raw: NVSModel
+    optimizer: torch.optim.Optimizer
+    lr_schedule: torch.optim.lr_scheduler.LRScheduler
+    ema: EMA
+    noise_schedule: DDPMScheduler
+    sequences: list[Sequence]
+
+
+def build_training(data: list[str | Path], config: FinetuneConfig) -> TrainingState:
+    """Model (seeded by ``config.seed``; from ``config.init_from``'s weights when given), data and optimiser of a
+    fine-tune, prepared by accelerate. Writes nothing."""
+    torch.manual_seed(config.seed)
+    accelerator = make_accelerator(config.mixed_precision)
+    model = NVSModel(config.model)
+    if config.init_from is not None:
+        model.load_weights_from(config.init_from)
+    if config.gradient_checkpointing:
+        model.enable_gradient_checkpointing()
+    warp = config.model.warp_hint
+    size = config.model.warp_source_size if warp else config.model.image_size
+    sequences = fixed_light_sequences(list(data), size, with_depth=warp)
+    optimizer = fused_adamw(model.trainable_parameters(), config.learning_rate, config.weight_decay)
+    lr_schedule = get_constant_schedule_with_warmup(optimizer, num_warmup_steps=config.warmup_steps)
+    model, optimizer, lr_schedule = accelerator.prepare(model, optimizer, lr_schedule)
+    raw = accelerator.unwrap_model(model)
+    ema = EMA(raw, decay=config.ema_decay)
+    accelerator.register_for_checkpointing(ema)
+    return TrainingState(accelerator, model, raw, optimizer, lr_schedule, ema,
+                         make_ddpm_scheduler(config.model.scheduler), sequences)
+
+
+def step_batch(state: TrainingState, config: FinetuneConfig, step: int) -> NVSBatch:
+    """The batch of step ``step`` (a pure function of ``config.seed`` and ``step``), on the training device."""
+    generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
+    batch = sample_batch(state.sequences, config.objects_per_batch, config.views_per_object, generator)
+    return _to_device(batch, state.accelerator.device)
+
+
+def training_step(state: TrainingState, config: FinetuneConfig, batch: NVSBatch, step: int) -> Tensor:
+    """Loss of ``batch`` (autocast in ``config.mixed_precision``), backward pass, optimiser and EMA updates.
+    Returns the loss (on the device: reading it waits for the GPU)."""
+    with state.accelerator.autocast():
+        loss = state.raw.training_loss(
+            batch,
+            generator=_device_generator(state.accelerator.device, config.seed, step),
+            scheduler=state.noise_schedule,
+        )
+    state.accelerator.backward(loss)
+    state.optimizer.step()
+    state.lr_schedule.step()
+    state.optimizer.zero_grad(set_to_none=True)
+    state.ema.update(state.raw)
+    return loss
 
 
 @deterministic_kernels
@@ -50,72 +121,41 @@ def finetune(
     config = config or FinetuneConfig()
     deadline = Deadline(config.time_limit_s)
     out = Path(out)
-    torch.manual_seed(config.seed)
-    accelerator = make_accelerator(config.mixed_precision)
-    model = NVSModel(config.model)
-    if config.init_from is not None:
-        model.load_weights_from(config.init_from)
+    state = build_training(data, config)
     out.mkdir(parents=True, exist_ok=True)  # after what can be refused: a refused run leaves no folder behind
-    if config.gradient_checkpointing:
-        model.enable_gradient_checkpointing()
-    warp = config.model.warp_hint
-    size = config.model.warp_source_size if warp else config.model.image_size
-    sequences = fixed_light_sequences(list(data), size, with_depth=warp)
-    optimizer = torch.optim.AdamW(
-        model.trainable_parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
-    )
-    lr_schedule = get_constant_schedule_with_warmup(optimizer, num_warmup_steps=config.warmup_steps)
-    model, optimizer, lr_schedule = accelerator.prepare(model, optimizer, lr_schedule)
-    raw = accelerator.unwrap_model(model)
-    ema = EMA(raw, decay=config.ema_decay)
-    accelerator.register_for_checkpointing(ema)
-    noise_schedule = make_ddpm_scheduler(config.model.scheduler)
     atomic_write_json(out / "finetune_config.json", asdict(config))
 
     step = 0
     latest = latest_accelerate_checkpoint(out / CHECKPOINTS) if resume else None
     if latest is not None:
-        step = load_accelerate_checkpoint(accelerator, latest)["step"]
+        step = load_accelerate_checkpoint(state.accelerator, latest)["step"]
         log(f"resumed from {latest} at step {step}")
 
     log_path = out / "train_log.jsonl"
-    model.train()
+    state.model.train()
     while step < config.steps:
         start = time.perf_counter()
-        generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
-        batch = sample_batch(sequences, config.objects_per_batch, config.views_per_object, generator)
-        batch = _to_device(batch, accelerator.device)
-        with accelerator.autocast():
-            loss = raw.training_loss(
-                batch,
-                generator=_device_generator(accelerator.device, config.seed, step),
-                scheduler=noise_schedule,
-            )
-        accelerator.backward(loss)
-        optimizer.step()
-        lr_schedule.step()
-        optimizer.zero_grad(set_to_none=True)
-        ema.update(raw)
+        loss = training_step(state, config, step_batch(state, config, step), step)
         step += 1
         out_of_time = deadline.passed()
         if step % config.log_every == 0 or step == config.steps or out_of_time:
             record = {
                 "step": step,
                 "loss": loss.item(),
-                "lr": lr_schedule.get_last_lr()[0],
+                "lr": state.lr_schedule.get_last_lr()[0],
                 "seconds": time.perf_counter() - start,
             }
             with open(log_path, "a") as f:
                 f.write(json.dumps(record) + "\n")
             log(f"step {step}/{config.steps} loss {record['loss']:.4f}")
         if step % config.checkpoint_every == 0 or step == config.steps or out_of_time:
-            save_accelerate_checkpoint(accelerator, out / CHECKPOINTS, step, keep=config.keep_checkpoints)
+            save_accelerate_checkpoint(state.accelerator, out / CHECKPOINTS, step, keep=config.keep_checkpoints)
         if out_of_time:
             log(f"time limit of {config.time_limit_s:g} s reached at step {step}")
             break
 
-    with ema.averaged(raw):
-        return raw.save(out / "model")
+    with state.ema.averaged(state.raw):
+        return state.raw.save(out / "model")
 
 
 def _device_generator(device: torch.device, seed: int, step: int) -> torch.Generator:

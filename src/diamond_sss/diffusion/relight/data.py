@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diamond_sss.data.dataset import OLATDataset
-from diamond_sss.data.embedded import FINETUNE_PREFIX, embedded_dataset, embedded_dataset_names
+from diamond_sss.data.embedded import embedded_dataset, finetune_object_names
 from diamond_sss.data.errors import DataError
 from diamond_sss.diffusion.geometry.base import depth_to_nearness, world_to_camera_normals
 from diamond_sss.diffusion.relight.conditioning import conditioning_image, image_to_model
@@ -95,11 +95,6 @@ def _lit_views(dataset: OLATDataset, min_lights: int) -> dict[int, list[int]]:
 def _pad_lights(per_light: Tensor, count: int) -> Tensor:
     """``[n,...]`` -> ``[count,...]`` by repeating the last entry."""
     return torch.cat([per_light, per_light[-1:].expand(count - len(per_light), *per_light.shape[1:])])
-
-
-def finetune_object_names() -> list[str]:
-    """Embedded fine-tuning objects (``finetune/<object>``)."""
-    return [n for n in embedded_dataset_names() if n.startswith(FINETUNE_PREFIX)]
 
 
 def load_relight_views(
