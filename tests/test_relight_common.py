@@ -7,7 +7,12 @@ import torch
 
 from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.common.hashing import files_hash, state_dict_hash
-from diamond_sss.diffusion.common.runtime import Deadline, deterministic_kernels, make_accelerator
+from diamond_sss.diffusion.common.runtime import (
+    Deadline,
+    deterministic_kernels,
+    fused_adamw,
+    make_accelerator,
+)
 from diamond_sss.diffusion.common.sampling import ddim_sample
 from diamond_sss.diffusion.common.schedulers import SchedulerConfig, make_ddim_scheduler
 from diamond_sss.training.checkpoint import (
@@ -125,3 +130,22 @@ def test_a_deadline_passes_only_once_its_seconds_are_spent_and_refuses_bad_limit
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match=f"time_limit_s must be a finite number of seconds >= 0 or None, got {bad}"):
             Deadline(bad)
+
+
+
+def test_the_fused_adamw_makes_the_update_of_the_reference_adamw():
+    torch.manual_seed(0)
+    start = [torch.randn(5, 3), torch.randn(7)]
+    grads = [[torch.randn_like(p) for p in start] for _ in range(3)]
+    fused = [p.clone().requires_grad_(True) for p in start]
+    reference = [p.clone().requires_grad_(True) for p in start]
+    optimizers = [fused_adamw(fused, 1e-2, 0.1), torch.optim.AdamW(reference, 1e-2, weight_decay=0.1, foreach=False)]
+    assert optimizers[0].defaults["fused"] is True
+    for step_grads in grads:
+        for params, optimizer in zip((fused, reference), optimizers, strict=True):
+            for p, g in zip(params, step_grads, strict=True):
+                p.grad = g.clone()
+            optimizer.step()
+    for a, b, s0 in zip(fused, reference, start, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+        assert (a - s0).abs().min() > 1e-3  # three steps of lr 1e-2 moved every entry

@@ -13,7 +13,12 @@ import torch
 from torch import Tensor, nn
 
 from diamond_sss.diffusion.common.ema import EMA
-from diamond_sss.diffusion.common.runtime import Deadline, deterministic_kernels, make_accelerator
+from diamond_sss.diffusion.common.runtime import (
+    Deadline,
+    deterministic_kernels,
+    fused_adamw,
+    make_accelerator,
+)
 from diamond_sss.diffusion.common.targets import predicted_clean, v_target
 from diamond_sss.diffusion.relight.augment import augment_batch
 from diamond_sss.diffusion.relight.config import RelightLossWeights, RelightTrainConfig
@@ -115,7 +120,7 @@ def finetune(
     atomic_write_json(out / "train_config.json", asdict(config))
     accelerator = make_accelerator(config.mixed_precision)
     trainable = [p for p in model.parameters() if p.requires_grad]
-    optimizer = torch.optim.AdamW(trainable, lr=config.learning_rate, weight_decay=config.weight_decay)
+    optimizer = fused_adamw(trainable, config.learning_rate, config.weight_decay)
     schedule = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda step: lr_factor(step, config.warmup_steps, config.steps)
     )
