@@ -4,7 +4,9 @@ Steps, each timed and recorded even when an earlier one failed:
   1. the machine: GPU, driver, CUDA, torch, gsplat, Python;
   2. gsplat's CUDA build (JIT, first use) with one tiny ``gsplat.rasterization`` call;
   3. the CUDA tests (``pytest -m cuda``), then the whole suite on the CUDA machine;
-  4. ``benchmarks/speed.py --device cuda`` (training-step targets) and ``benchmarks/speed_raster.py``;
+  4. ``benchmarks/speed.py --device cuda`` (training-step targets) and ``benchmarks/speed_raster.py``; then
+     ``benchmarks/nvs_speed.py`` on the GPU prior's model (below): its step in parts, 4 and 8 objects, fp32 and
+     bf16, deterministic and default kernels, profiled;
   5. a demo-object reconstruction on CUDA (`diamond` preset, full objective) and its evaluation on the test
      split (novel views under novel lights);
   6. with ``--prior-data``: a larger, 64-px novel-view prior (issue 18's 30-image lever) trained for
@@ -41,7 +43,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-STEPS = ("build", "cuda-tests", "suite", "speed", "speed-raster", "train", "eval", "nvs-prior")
+STEPS = ("build", "cuda-tests", "suite", "speed", "speed-raster", "nvs-speed", "train", "eval", "nvs-prior")
 PRIOR_MODEL = ["--image-size", "64", "--block-out-channels", "48", "96", "96", "--layers-per-block", "2",
                "--prediction-type", "v_prediction", "--hint-residual", "--no-gradient-checkpointing",
                "--learning-rate", "3e-4", "--objects-per-batch", "8", "--checkpoint-every", "500", "--log-every", "20"]
@@ -203,6 +205,9 @@ def main() -> None:
         "speed": [python, "benchmarks/speed.py", "--device", "cuda", "--profile", "--output", str(out)],
         "speed-raster": [python, "benchmarks/speed_raster.py", "--resolutions", "64", "--counts", "10000",
                          "--output", str(out / "speed_raster.json")],
+        "nvs-speed": [python, "benchmarks/nvs_speed.py", *(["--data", *map(str, args.prior_data)] if args.prior_data
+                                                           else []), *PRIOR_MODEL, "--profile",
+                      "--output", str(out / "nvs_speed")],
         "train": cli + ["train", "--data", str(demo), "--out", str(run_dir), "--preset", "diamond",
                         "--iterations", str(args.iterations), "--device", "cuda", "--quiet",
                         *(f"--set={item}" for item in args.set)],
@@ -225,6 +230,9 @@ def main() -> None:
     speed = out / "speed.json"
     if speed.is_file():
         report["speed"] = json.loads(speed.read_text())
+    nvs_speed = out / "nvs_speed" / "nvs_speed.json"
+    if nvs_speed.is_file():
+        report["nvs_speed"] = json.loads(nvs_speed.read_text())
     metrics = run_dir / "eval_test" / "metrics.json"
     if metrics.is_file():
         report["demo_metrics"] = json.loads(metrics.read_text())
@@ -247,6 +255,11 @@ def step_summary(name: str, result: dict, out: Path) -> str | None:
         return pytest_counts(result["tail"])
     if name == "speed" and result["exit_code"] == 0 and (out / "speed.json").is_file():
         return f"{len(json.loads((out / 'speed.json').read_text())['results'])} cases (tables below)"
+    if name == "nvs-speed" and result["exit_code"] == 0 and (out / "nvs_speed" / "nvs_speed.json").is_file():
+        rows = json.loads((out / "nvs_speed" / "nvs_speed.json").read_text())["results"]
+        best = max(rows, key=lambda r: r["images_per_second"])
+        return (f"{len(rows)} cases, best {best['images_per_second']:.0f} images/s ({best['objects']} objects, "
+                f"{best['precision']}, {best['kernels']} kernels; table below)")
     return None
 
 
@@ -279,6 +292,13 @@ def markdown(report: dict) -> str:
                       "|---|---|---|---|---|---|"]
             lines += [f"| {r['gaussians']} | {r['resolution']} | {r['multiview']} | {r['operators_per_step']:.0f} "
                       f"| {r['cuda_kernels_per_step']:.0f} | {r['host_syncs_per_step']:.1f} |" for r in profiled]
+    if "nvs_speed" in report:
+        lines += ["", "Novel-view prior's step (`benchmarks/nvs_speed.py`):", "",
+                  "| objects | precision | kernels | batch ms | step ms | images/s | peak GiB | host syncs / step |",
+                  "|---|---|---|---|---|---|---|---|"]
+        lines += [f"| {r['objects']} | {r['precision']} | {r['kernels']} | {r['batch_ms']:.1f} | {r['step_ms']:.1f} "
+                  f"| {r['images_per_second']:.0f} | {r['peak_gib'] or 0:.2f} | {r.get('host_syncs_per_step', '-')} |"
+                  for r in report["nvs_speed"]["results"]]
     if "demo_training" in report:
         t = report["demo_training"]
         rate = t["steps"] / max(t["seconds"], 1e-9)

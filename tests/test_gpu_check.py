@@ -7,7 +7,9 @@ import os
 import sys
 from pathlib import Path
 
+import pytest
 import torch
+import tyro
 from repo_scripts import load_script
 
 gpu_check = load_script("scripts/gpu_check.py", "gpu_check")
@@ -35,6 +37,9 @@ def test_the_report_lists_machine_steps_speed_and_metrics():
                                "render_forward_ms": 1.0, "render_backward_ms": 2.0, "train_step_ms": 5.0,
                                "steps_per_second": 200.0, "operators_per_step": 3021.4,
                                "cuda_kernels_per_step": 2870.0, "host_syncs_per_step": 4.0}]},
+        "nvs_speed": {"results": [{"objects": 8, "precision": "bf16", "kernels": "default", "batch_ms": 2.0,
+                                   "step_ms": 38.0, "images_per_second": 800.0, "peak_gib": 3.25,
+                                   "host_syncs_per_step": 0.0}]},
         "demo_training": {"steps": 3000, "seconds": 30.0, "num_gaussians": 9000, "final_loss": 0.01},
         "demo_metrics": {"summary": {"psnr": 30.1}},
     }
@@ -43,6 +48,7 @@ def test_the_report_lists_machine_steps_speed_and_metrics():
     assert "| cuda | 10000 | 64 | True | 1.00 | 2.00 | 5.00 | 200.0 |" in text
     assert "100.0 steps/s" in text and '"psnr": 30.1' in text
     assert "| 10000 | 64 | True | 3021 | 2870 | 4.0 |" in text
+    assert "| 8 | bf16 | default | 2.0 | 38.0 | 800 | 3.25 | 0.0 |" in text
 
 
 def test_a_speed_step_is_summarised_by_its_cases_not_its_last_log_line(tmp_path):
@@ -98,6 +104,21 @@ def test_the_prior_options_are_ones_finetune_nvs_takes():
     fields = set(FinetuneOptions.__dataclass_fields__) | set(NVSModelOptions.__dataclass_fields__)
     options = [a[2:].replace("-", "_") for a in gpu_check.PRIOR_MODEL if a.startswith("--")]
     assert {o.removeprefix("no_") for o in options} <= fields
+
+
+def test_the_prior_options_parse_in_the_nvs_speed_benchmark(tmp_path):
+    nvs_speed = load_script("benchmarks/nvs_speed.py")
+    args = [*gpu_check.PRIOR_MODEL, "--profile", "--output", str(tmp_path), "--timed-steps", "0"]
+    with pytest.raises(ValueError, match="--timed-steps must be >= 1"):  # parsed; refused before any work
+        tyro.cli(nvs_speed.run, args=args)
+    summary = gpu_check.step_summary("nvs-speed", {"exit_code": 0, "tail": []}, tmp_path)
+    assert summary is None  # no table written
+    (tmp_path / "nvs_speed").mkdir()
+    rows = [{"objects": 4, "precision": "no", "kernels": "deterministic", "images_per_second": 100.0},
+            {"objects": 8, "precision": "bf16", "kernels": "default", "images_per_second": 700.0}]
+    (tmp_path / "nvs_speed" / "nvs_speed.json").write_text(json.dumps({"results": rows}))
+    assert gpu_check.step_summary("nvs-speed", {"exit_code": 0, "tail": []}, tmp_path) == (
+        "2 cases, best 700 images/s (8 objects, bf16, default kernels; table below)")
 
 
 def test_the_prior_summary_reads_past_a_log_line_cut_short(tmp_path):
