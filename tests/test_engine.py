@@ -154,6 +154,32 @@ def test_the_default_preset_trains_on_cuda(capture, tmp_path):
     assert {"raytrace", "mv_silhouette", "mv_depth"} <= result.history[-1].keys()
 
 
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("multiview", [False, True], ids=["plain", "multiview"])
+def test_a_training_step_on_cuda_queues_without_waiting_for_the_gpu(capture, tmp_path, multiview):
+    """Batch upload, render, losses, backward pass and optimisers between two ray-tracing steps with CUDA's sync
+    debugging set to raise on any host sync (a sync stops the host queueing the next kernels ahead of the GPU)."""
+    overrides = {**TINY, "device": "cuda", "raytrace_every": 1000, "log_every": 1000}
+    if not multiview:
+        overrides.update(lambda_sil=0.0, lambda_depth=0.0)
+    trainer = Trainer(make_config("diamond", overrides=overrides), [ImageSource(OLATDataset(capture))],
+                      tmp_path / "run", show_progress=False)
+    scene = trainer.build_scene()
+    optimizers = trainer.build_optimizers(scene)
+    state = trainer._initial_strategy_state()
+    for step in range(4):  # ray tracing at step 0; every light's maps made
+        trainer.training_step(scene, optimizers, state, step)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        terms = trainer.training_step(scene, optimizers, state, 4)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert torch.isfinite(terms["total"]).item()
+    assert ("mv_silhouette" in terms) == multiview
+
+
 @pytest.mark.parametrize("value", [-0.5, float("nan")])
 def test_synthetic_weight_is_checked_in_the_config_not_in_the_step(value):
     from diamond_sss.training.overrides import make_config

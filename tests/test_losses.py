@@ -70,6 +70,27 @@ def test_weights_are_absolute_not_normalised_in_the_batch():
     assert photometric_loss(pred, target, 0.2).item() == pytest.approx(real.item(), rel=1e-6)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_ssim_with_the_kept_window_is_the_librarys_ssim(dtype):
+    from pytorch_msssim import ssim
+
+    torch.manual_seed(0)
+    a, b = torch.rand(2, 16, 20, 3, dtype=dtype), torch.rand(2, 16, 20, 3, dtype=dtype)
+    expected = ssim(a.permute(0, 3, 1, 2), b.permute(0, 3, 1, 2), data_range=1.0, size_average=False)
+    assert torch.equal(ssim_per_image(a, b), expected)
+
+
+def test_an_ssim_window_made_during_evaluation_serves_training():
+    from diamond_sss.losses.photometric import ssim_window
+
+    ssim_window.cache_clear()
+    a, b = torch.rand(1, 12, 12, 2), torch.rand(1, 12, 12, 2, requires_grad=True)
+    with torch.inference_mode():
+        ssim_per_image(a, b.detach())  # first use: the window is made here and kept
+    ssim_per_image(a, b).sum().backward()
+    assert b.grad is not None and b.grad.abs().sum() > 0
+
+
 def test_ssim_identity_and_dissimilarity():
     a, b = _images()
     assert torch.allclose(ssim_per_image(a, a), torch.ones(2), atol=1e-5)

@@ -167,8 +167,7 @@ def sample_bilinear(image: Tensor, uv: Tensor) -> Tensor:
     texel centres exactly; coordinates outside the image read the border value. Differentiable in both inputs.
     """
     height, width = image.shape[-2:]
-    scale = uv.new_tensor([2.0 / width, 2.0 / height])
-    grid = (uv * scale - 1.0).unsqueeze(1)
+    grid = torch.stack([uv[..., 0] * (2.0 / width), uv[..., 1] * (2.0 / height)], dim=-1).sub(1.0).unsqueeze(1)
     sampled = F.grid_sample(
         image.unsqueeze(1), grid.to(image.dtype), mode="bilinear", padding_mode="border", align_corners=False
     )

@@ -5,10 +5,14 @@ Images are ``[B,H,W,C]`` channels-last float tensors (linear radiance during tra
 
 from __future__ import annotations
 
+import functools
+
+import torch
 from pytorch_msssim import ssim as _msssim_ssim
 from torch import Tensor
 
 SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
 
 
 def _check_pair(pred: Tensor, target: Tensor) -> None:
@@ -31,8 +35,21 @@ def l1_per_image(pred: Tensor, target: Tensor) -> Tensor:
     return (pred - target).abs().mean(dim=(1, 2, 3))
 
 
+@functools.lru_cache(maxsize=16)
+def ssim_window(channels: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """pytorch_msssim's separable Gaussian window ``g_i = exp(-(i - 5)^2 / (2 sigma^2)) / sum``, ``[C,1,1,11]``, made
+    once per device and dtype (the library makes it on the host at every call: on CUDA a copy that waits for the
+    GPU at every training step)."""
+    with torch.inference_mode(False):  # made inside an evaluation, it is still usable by a training step
+        coords = torch.arange(SSIM_WINDOW, dtype=torch.float32, device=device) - SSIM_WINDOW // 2
+        window = torch.exp(-(coords**2) / (2 * SSIM_SIGMA**2))
+        window = window / window.sum()
+        return window.to(dtype).reshape(1, 1, 1, SSIM_WINDOW).repeat(channels, 1, 1, 1)
+
+
 def ssim_per_image(pred: Tensor, target: Tensor) -> Tensor:
-    """Gaussian-window SSIM (window 11, sigma 1.5, ``data_range = 1``) of each image, channel-averaged.
+    """Gaussian-window SSIM (window 11, sigma 1.5: :func:`ssim_window`, ``data_range = 1``) of each image,
+    channel-averaged.
 
     Wraps ``pytorch_msssim.ssim`` (NCHW inside). ``[B,H,W,C] -> [B]``. Both sides must be at least
     11 pixels (the window size).
@@ -45,7 +62,8 @@ def ssim_per_image(pred: Tensor, target: Tensor) -> Tensor:
         )
     nchw_pred = pred.permute(0, 3, 1, 2)
     nchw_target = target.permute(0, 3, 1, 2)
-    return _msssim_ssim(nchw_pred, nchw_target, data_range=1.0, size_average=False, win_size=SSIM_WINDOW)
+    window = ssim_window(pred.shape[-1], pred.device, pred.dtype)
+    return _msssim_ssim(nchw_pred, nchw_target, data_range=1.0, size_average=False, win=window)
 
 
 def dssim_per_image(pred: Tensor, target: Tensor) -> Tensor:

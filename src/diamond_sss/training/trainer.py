@@ -45,7 +45,7 @@ from diamond_sss.training.objective import TargetBatch, image_objective
 from diamond_sss.training.run_folder import check_resumable, finished_summary
 from diamond_sss.training.schedules import exponential_lr, linear_warmup, step_decay
 from diamond_sss.utils import rng
-from diamond_sss.utils.device import resolve_device
+from diamond_sss.utils.device import resolve_device, to_device
 from diamond_sss.utils.io import atomic_write_json
 
 logger = logging.getLogger(__name__)
@@ -259,15 +259,15 @@ class Trainer:
             weights.append(source.weight_of(obs_index))
             views.append(self.union.view_maps[source_index][sample.view])
             lights.append(self.union.light_maps[source_index][sample.light])
-        rgb = torch.stack(rgbs).to(self.device)
+        rgb = to_device(torch.stack(rgbs), self.device)
         host_masks = torch.stack(masks)
-        mask = host_masks.to(self.device)
+        mask = to_device(host_masks, self.device)
         if cfg.shading.random_background:
             background = rng.rand(len(picks), 1, 1, 3, generator=generator, device=self.device)
             rgb = rgb + (1.0 - mask) * background
-        views_t = torch.tensor(views, device=self.device)
-        lights_t = torch.tensor(lights, device=self.device)
-        target = TargetBatch(rgb=rgb, mask=mask, weights=torch.tensor(weights, device=self.device),
+        views_t = to_device(torch.tensor(views), self.device)
+        lights_t = to_device(torch.tensor(lights), self.device)
+        target = TargetBatch(rgb=rgb, mask=mask, weights=to_device(torch.tensor(weights), self.device),
                              viewmats=self.viewmats[views_t], Ks=self.Ks[views_t])
         self._batch_views = views
         self._batch_lights = lights
@@ -310,7 +310,7 @@ class Trainer:
             targets.append(int(pool[torch.randint(pool.numel(), (1,), generator=generator)]))
         if not sources:
             return {}
-        tgt = torch.tensor(targets, device=self.device)
+        tgt = to_device(torch.tensor(targets), self.device)
         factor = cfg.multiview.target_downscale
         tgt_width, tgt_height = max(1, self.width // factor), max(1, self.height // factor)
         tgt_K = scale_intrinsics(self.Ks[tgt], tgt_width / self.width)
@@ -321,7 +321,7 @@ class Trainer:
             else tgt_alpha[p].detach()
             for p, t in enumerate(targets)
         ])
-        src = torch.tensor(sources, device=self.device)
+        src = to_device(torch.tensor(sources), self.device)
         uv_list = [sample_foreground_pixels(self._batch_masks[b, ..., 0], cfg.multiview.pixels_per_pair, generator)
                    for b in sources]
         count = max(1, max(uv.shape[0] for uv in uv_list))
@@ -330,7 +330,7 @@ class Trainer:
         for p, pixels in enumerate(uv_list):
             host_uv[p, : pixels.shape[0]] = pixels
             host_valid[p, : pixels.shape[0]] = True
-        uv, valid = host_uv.to(self.device), host_valid.to(self.device)
+        uv, valid = to_device(host_uv, self.device), to_device(host_valid, self.device)
         terms = multiview_losses_batched(
             render.gbuffer.depth[src, ..., 0], render.gbuffer.alpha[src, ..., 0], uv, target.viewmats[src],
             target.Ks[src], tgt_depth, tgt_alpha, silhouettes, self.viewmats[tgt], tgt_K,
