@@ -9,14 +9,14 @@
 #   scripts/gpu_lease.sh --skip suite speed speed-raster train eval --prior-minutes 6   # CUDA tests + the prior
 #   scripts/gpu_lease.sh --skip cuda-tests suite --iterations 10000                      # speed + a 10k demo run
 #   scripts/gpu_lease.sh --skip cuda-tests suite speed-raster train eval nvs-prior       # speed.py --profile alone
-# Going on with an earlier lease's prior (its nvs_prior_model/, 12 MiB, copied to outputs/nvs_prior_init): the
-# checkout, all wheels, the captures and it exceed 64 MiB, so carry only the wheels the prior needs (~6 MiB: not
-# gsplat, optuna and the database packages, which the steps skipped here need) and
-# carry ["outputs/whl_prior", "outputs/priors.tgz", "outputs/nvs_prior_init"]:
-#   mkdir -p outputs/whl_prior && cp .whl/*.whl outputs/whl_prior/ && \
-#       rm outputs/whl_prior/{gsplat,optuna,sqlalchemy,alembic,greenlet,mako,colorlog}-*.whl
-#   WHEELS=outputs/whl_prior OUT=$OUT scripts/gpu_lease.sh --skip build cuda-tests suite speed speed-raster train eval \
-#       --prior-minutes 8 --prior-init outputs/nvs_prior_init
+# Going on with an earlier lease's prior (its nvs_prior_model/, 13 MiB, copied to outputs/nvs_prior_init): the
+# checkout, all wheels, the captures and it exceed 64 MiB, so carry the wheels without optuna and the database
+# packages (~13 MiB; only the suite and the tuning need them):
+#   mkdir -p outputs/whl_lease && cp .whl/*.whl outputs/whl_lease/ && \
+#       rm outputs/whl_lease/{optuna,sqlalchemy,alembic,greenlet,mako,colorlog}-*.whl
+# and carry ["outputs/whl_lease", "outputs/priors.tgz", "outputs/nvs_prior_init"] (~63 MiB with the checkout):
+#   WHEELS=outputs/whl_lease OUT=$OUT scripts/gpu_lease.sh --skip suite speed speed-raster train eval \
+#       --prior-minutes 6 --prior-init outputs/nvs_prior_init   # CUDA tests, the prior's step profiled, the prior
 set -uo pipefail
 cd "$(dirname "$0")/.."
 : "${OUT:?OUT must name the folder whose files come back}"
