@@ -3,8 +3,8 @@
 For each objects-per-step x precision x kernel mode: the mean time of the batch (sampling on the host, copy to the
 device) and of the step (loss forward, backward pass, optimiser and EMA updates), each synchronised, over
 ``--timed-steps`` steps after ``--warmup``; target images per second and peak GPU memory. Kernel modes: ``deterministic``
-(what ``finetune-nvs`` runs: cuDNN without autotuning, deterministic algorithms) and ``default`` (autotuned cuDNN,
-torch's defaults), so the price of reproducibility is on the table. With ``--profile``, torch.profiler's tables of
+(what ``finetune-nvs`` runs: cuDNN without autotuning, deterministic algorithms) and ``autotuned`` (cuDNN autotuning,
+no deterministic algorithms), so the price of reproducibility is on the table. With ``--profile``, torch.profiler's tables of
 3 more steps per case (``profile_nvs_<case>.txt``: operators by self CPU / CUDA time, host syncs by call site) and
 their counts. The model and the fine-tune take ``finetune-nvs``'s options; ``scripts/gpu_check.py`` passes the GPU
 prior's. Writes ``nvs_speed.{json,md}`` into ``--output``.
@@ -16,10 +16,12 @@ prior's. Writes ``nvs_speed.{json,md}`` into ``--output``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import platform
 import statistics
 import time
+from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Annotated, Literal
@@ -39,18 +41,37 @@ RESULTS = Path(__file__).resolve().parent / "results" / "nvs_speed"
 PROFILE_STEPS = 3
 """Steps profiled per case with ``--profile``."""
 
-KernelMode = Literal["deterministic", "default"]
+KernelMode = Literal["deterministic", "autotuned"]
 
 
 def time_case(data: list[Path], config: FinetuneConfig, kernels: KernelMode, steps: int, warmup: int,
               profile_dir: Path | None = None) -> dict:
     """One case: mean batch and step milliseconds over ``steps`` steps after ``warmup``, images per second, peak GPU
     memory (GiB, CUDA only) and, with ``profile_dir``, :func:`profile_steps` of the next steps."""
-    measure = deterministic_kernels(_measure) if kernels == "deterministic" else _measure
+    measure = deterministic_kernels(_measure) if kernels == "deterministic" else autotuned_kernels(_measure)
     row = measure(data, config, steps, warmup, profile_dir, kernels)
     images = config.objects_per_batch * config.views_per_object
     return {"objects": config.objects_per_batch, "images": images, "precision": config.mixed_precision,
             "kernels": kernels, **row, "images_per_second": 1e3 * images / (row["batch_ms"] + row["step_ms"])}
+
+
+def autotuned_kernels(fn: Callable[..., dict]) -> Callable[..., dict]:
+    """Run ``fn`` with cuDNN autotuning and without deterministic algorithms (what a run would use that gives up
+    reproducibility for speed); the previous settings are restored after."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs) -> dict:
+        previous = (torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark,
+                    torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
+        torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = False, True
+        torch.use_deterministic_algorithms(False)
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = previous[:2]
+            torch.use_deterministic_algorithms(previous[2], warn_only=previous[3])
+
+    return wrapper
 
 
 def _measure(data: list[Path], config: FinetuneConfig, steps: int, warmup: int, profile_dir: Path | None,
@@ -86,7 +107,7 @@ def run(
     data: list[Path] | None = None,
     objects: tuple[int, ...] = (4, 8),
     precisions: tuple[Literal["no", "fp16", "bf16"], ...] = ("no", "bf16"),
-    kernels: tuple[KernelMode, ...] = ("deterministic", "default"),
+    kernels: tuple[KernelMode, ...] = ("deterministic", "autotuned"),
     timed_steps: int = 10,
     warmup: int = 3,
     profile: bool = False,
@@ -100,7 +121,7 @@ def run(
         data: OLAT data folders (default: the embedded fine-tuning objects).
         objects: objects per step to time (each with ``--views-per-object`` target views).
         precisions: autocast settings to time (``fp16`` needs CUDA).
-        kernels: kernel modes to time: ``deterministic`` (as ``finetune-nvs``) and ``default``.
+        kernels: kernel modes to time: ``deterministic`` (as ``finetune-nvs``) and ``autotuned``.
         timed_steps: timed steps per case.
         warmup: steps before the timed ones (cuDNN autotuning, allocator, autocast caches).
         profile: also profile 3 steps per case (operators, CUDA kernels, host syncs).

@@ -6,7 +6,7 @@ Steps, each timed and recorded even when an earlier one failed:
   3. the CUDA tests (``pytest -m cuda``), then the whole suite on the CUDA machine;
   4. ``benchmarks/speed.py --device cuda`` (training-step targets) and ``benchmarks/speed_raster.py``; then
      ``benchmarks/nvs_speed.py`` on the GPU prior's model (below): its step in parts, 4 and 8 objects, fp32 and
-     bf16, deterministic and default kernels, profiled;
+     bf16, deterministic and autotuned kernels, profiled;
   5. a demo-object reconstruction on CUDA (`diamond` preset, full objective) and its evaluation on the test
      split (novel views under novel lights);
   6. with ``--prior-data``: a larger, 64-px novel-view prior (issue 18's 30-image lever) trained for

@@ -37,7 +37,7 @@ def test_the_report_lists_machine_steps_speed_and_metrics():
                                "render_forward_ms": 1.0, "render_backward_ms": 2.0, "train_step_ms": 5.0,
                                "steps_per_second": 200.0, "operators_per_step": 3021.4,
                                "cuda_kernels_per_step": 2870.0, "host_syncs_per_step": 4.0}]},
-        "nvs_speed": {"results": [{"objects": 8, "precision": "bf16", "kernels": "default", "batch_ms": 2.0,
+        "nvs_speed": {"results": [{"objects": 8, "precision": "bf16", "kernels": "autotuned", "batch_ms": 2.0,
                                    "step_ms": 38.0, "images_per_second": 800.0, "peak_gib": 3.25,
                                    "host_syncs_per_step": 0.0}]},
         "demo_training": {"steps": 3000, "seconds": 30.0, "num_gaussians": 9000, "final_loss": 0.01},
@@ -48,7 +48,7 @@ def test_the_report_lists_machine_steps_speed_and_metrics():
     assert "| cuda | 10000 | 64 | True | 1.00 | 2.00 | 5.00 | 200.0 |" in text
     assert "100.0 steps/s" in text and '"psnr": 30.1' in text
     assert "| 10000 | 64 | True | 3021 | 2870 | 4.0 |" in text
-    assert "| 8 | bf16 | default | 2.0 | 38.0 | 800 | 3.25 | 0.0 |" in text
+    assert "| 8 | bf16 | autotuned | 2.0 | 38.0 | 800 | 3.25 | 0.0 |" in text
 
 
 def test_a_speed_step_is_summarised_by_its_cases_not_its_last_log_line(tmp_path):
@@ -115,10 +115,10 @@ def test_the_prior_options_parse_in_the_nvs_speed_benchmark(tmp_path):
     assert summary is None  # no table written
     (tmp_path / "nvs_speed").mkdir()
     rows = [{"objects": 4, "precision": "no", "kernels": "deterministic", "images_per_second": 100.0},
-            {"objects": 8, "precision": "bf16", "kernels": "default", "images_per_second": 700.0}]
+            {"objects": 8, "precision": "bf16", "kernels": "autotuned", "images_per_second": 700.0}]
     (tmp_path / "nvs_speed" / "nvs_speed.json").write_text(json.dumps({"results": rows}))
     assert gpu_check.step_summary("nvs-speed", {"exit_code": 0, "tail": []}, tmp_path) == (
-        "2 cases, best 700 images/s (8 objects, bf16, default kernels; table below)")
+        "2 cases, best 700 images/s (8 objects, bf16, autotuned kernels; table below)")
 
 
 def test_the_prior_summary_reads_past_a_log_line_cut_short(tmp_path):

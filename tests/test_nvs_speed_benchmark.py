@@ -16,17 +16,17 @@ TINY = NVSModelOptions(image_size=16, block_out_channels=(8, 16, 16), layers_per
 
 def test_each_case_is_timed_profiled_and_written(tmp_path):
     data = [embedded_dataset(finetune_object_names()[0])]
-    rows = nvs_speed.run(data=data, objects=(1, 2), precisions=("no",), kernels=("deterministic", "default"),
+    rows = nvs_speed.run(data=data, objects=(1, 2), precisions=("no",), kernels=("deterministic", "autotuned"),
                          timed_steps=1, warmup=1, profile=True, output=tmp_path, model=TINY)
-    assert [(r["objects"], r["kernels"]) for r in rows] == [(1, "deterministic"), (1, "default"),
-                                                            (2, "deterministic"), (2, "default")]
+    assert [(r["objects"], r["kernels"]) for r in rows] == [(1, "deterministic"), (1, "autotuned"),
+                                                            (2, "deterministic"), (2, "autotuned")]
     for r in rows:
         assert r["images"] == 4 * r["objects"] and r["device"] == "cpu" and r["peak_gib"] is None
         assert r["images_per_second"] == pytest.approx(1e3 * r["images"] / (r["batch_ms"] + r["step_ms"]))
         assert r["operators_per_step"] > 100 and r["cuda_kernels_per_step"] == 0
     saved = json.loads((tmp_path / "nvs_speed.json").read_text())
     assert saved["results"] == rows and saved["meta"]["model"]["image_size"] == 16
-    assert (tmp_path / "profile_nvs_cpu_2obj_no_default.txt").read_text().startswith('{"operators_per_step"')
+    assert (tmp_path / "profile_nvs_cpu_2obj_no_autotuned.txt").read_text().startswith('{"operators_per_step"')
     table = (tmp_path / "nvs_speed.md").read_text().splitlines()
     assert table[2] == nvs_speed.HEADER and len(table) == 4 + len(rows)
     assert all(line.count("|") == table[2].count("|") for line in table[3:])
