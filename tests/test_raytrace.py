@@ -133,6 +133,18 @@ def test_matches_dense_reference_and_chunking_does_not_matter():
     assert (whole < 0.99).sum() > 50 and (whole > 0.01).sum() > 50  # the scene is neither empty nor opaque
 
 
+def test_default_chunks_are_small_on_the_cpu_and_budgeted_on_cuda():
+    from diamond_sss.shading.raytrace import CPU_CHUNKS, CUDA_CHUNK_PAIRS, transmittance_chunks
+
+    assert transmittance_chunks(10**6, torch.device("cpu")) == CPU_CHUNKS
+    cuda = torch.device("cuda")  # a device object needs no GPU
+    assert transmittance_chunks(6000, cuda) == (6000, CUDA_CHUNK_PAIRS // 6000)
+    assert transmittance_chunks(10**6, cuda) == (8192, CUDA_CHUNK_PAIRS // 8192)
+    assert transmittance_chunks(1, cuda) == (1, CUDA_CHUNK_PAIRS)
+    _, gaussians = transmittance_chunks(8192, cuda)
+    assert math.ceil(300_000 / gaussians) * 3 == 111  # host syncs of a ray-traced step at 300k (882 with CPU_CHUNKS)
+
+
 def test_raytraced_visibility_towards_light_and_samples():
     # A at the origin, an opaque-ish blocker B on the +x axis.
     gaussians = isotropic([[0, 0, 0], [1, 0, 0]], 0.1, [0.9, 0.8])
