@@ -16,12 +16,10 @@ prior's. Writes ``nvs_speed.{json,md}`` into ``--output``.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import platform
 import statistics
 import time
-from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Annotated, Literal
@@ -32,7 +30,7 @@ import tyro
 from diamond_sss.cli.nvs_commands import FinetuneOptions, NVSModelOptions, model_config
 from diamond_sss.cli.options import config_from
 from diamond_sss.data.embedded import embedded_dataset, finetune_object_names
-from diamond_sss.diffusion.common.runtime import deterministic_kernels
+from diamond_sss.diffusion.common.runtime import kernel_settings
 from diamond_sss.diffusion.nvs.config import FinetuneConfig
 from diamond_sss.diffusion.nvs.train import build_training, step_batch, training_step
 from diamond_sss.utils.profiling import profile_steps, synchronize
@@ -48,30 +46,11 @@ def time_case(data: list[Path], config: FinetuneConfig, kernels: KernelMode, ste
               profile_dir: Path | None = None) -> dict:
     """One case: mean batch and step milliseconds over ``steps`` steps after ``warmup``, images per second, peak GPU
     memory (GiB, CUDA only) and, with ``profile_dir``, :func:`profile_steps` of the next steps."""
-    measure = deterministic_kernels(_measure) if kernels == "deterministic" else autotuned_kernels(_measure)
-    row = measure(data, config, steps, warmup, profile_dir, kernels)
+    with kernel_settings(deterministic=kernels == "deterministic"):
+        row = _measure(data, config, steps, warmup, profile_dir, kernels)
     images = config.objects_per_batch * config.views_per_object
     return {"objects": config.objects_per_batch, "images": images, "precision": config.mixed_precision,
             "kernels": kernels, **row, "images_per_second": 1e3 * images / (row["batch_ms"] + row["step_ms"])}
-
-
-def autotuned_kernels(fn: Callable[..., dict]) -> Callable[..., dict]:
-    """Run ``fn`` with cuDNN autotuning and without deterministic algorithms (what a run would use that gives up
-    reproducibility for speed); the previous settings are restored after."""
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs) -> dict:
-        previous = (torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark,
-                    torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
-        torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = False, True
-        torch.use_deterministic_algorithms(False)
-        try:
-            return fn(*args, **kwargs)
-        finally:
-            torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = previous[:2]
-            torch.use_deterministic_algorithms(previous[2], warn_only=previous[3])
-
-    return wrapper
 
 
 def _measure(data: list[Path], config: FinetuneConfig, steps: int, warmup: int, profile_dir: Path | None,

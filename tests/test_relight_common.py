@@ -121,6 +121,22 @@ def test_deterministic_kernels_are_scoped_to_the_call():
     assert (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic) == before
 
 
+def test_autotuned_kernel_settings_are_scoped_to_the_block():
+    from diamond_sss.diffusion.common.runtime import kernel_settings
+
+    def current():
+        return (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic,
+                torch.backends.cudnn.benchmark)
+
+    before = current()
+    with kernel_settings(deterministic=True):
+        with pytest.raises(RuntimeError, match="fails inside"), kernel_settings(deterministic=False):
+            assert current() == (False, False, True)
+            raise RuntimeError("fails inside")
+        assert current() == (True, True, False)
+    assert current() == before
+
+
 def test_a_deadline_passes_only_once_its_seconds_are_spent_and_refuses_bad_limits():
     assert not Deadline(None).passed() and not Deadline(3600.0).passed()
     spent = Deadline(0.0)

@@ -3,11 +3,12 @@ and keeps a run's wall-time limit."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import os
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from typing import ParamSpec, TypeVar
 
 import torch
@@ -18,27 +19,33 @@ P = ParamSpec("P")
 R = TypeVar("R")
 
 
-def deterministic_kernels(fn: Callable[P, R]) -> Callable[P, R]:
-    """Run ``fn`` with deterministic kernels, so a seeded fine-tune (and its resume) is reproducible on CUDA.
+@contextlib.contextmanager
+def kernel_settings(deterministic: bool) -> Iterator[None]:
+    """cuDNN and torch's kernel choice for the block, restored after: ``deterministic`` (cuDNN's deterministic
+    convolution algorithms without autotuning, cuBLAS with a fixed workspace, ``CUBLAS_WORKSPACE_CONFIG=:4096:8``
+    unless set, and operations without a deterministic CUDA kernel warn instead of failing) or autotuned (cuDNN
+    benchmarks its algorithms, no deterministic algorithms asked for)."""
+    if deterministic:
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    previous = (torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark,
+                torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
+    torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = deterministic, not deterministic
+    torch.use_deterministic_algorithms(deterministic, warn_only=True)
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = previous[:2]
+        torch.use_deterministic_algorithms(previous[2], warn_only=previous[3])
 
-    cuDNN picks deterministic convolution algorithms (no autotuning), cuBLAS gets a fixed workspace
-    (``CUBLAS_WORKSPACE_CONFIG=:4096:8`` unless set; read when its first handle is made), and operations
-    without a deterministic CUDA kernel warn instead of failing. The previous settings are restored after.
-    Costs a few percent of speed on CUDA; CPU results do not change.
-    """
+
+def deterministic_kernels(fn: Callable[P, R]) -> Callable[P, R]:
+    """Run ``fn`` under ``kernel_settings(deterministic=True)``, so a seeded fine-tune (and its resume) is
+    reproducible on CUDA. Costs a few percent of speed on CUDA; CPU results do not change."""
 
     @functools.wraps(fn)
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
-        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
-        previous = (torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark,
-                    torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
-        torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = True, False
-        torch.use_deterministic_algorithms(True, warn_only=True)
-        try:
+        with kernel_settings(deterministic=True):
             return fn(*args, **kwargs)
-        finally:
-            torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = previous[:2]
-            torch.use_deterministic_algorithms(previous[2], warn_only=previous[3])
 
     return wrapper
 
