@@ -269,6 +269,11 @@ def atomic_json(path: Path, value: dict) -> None:
     os.replace(tmp, path)
 
 
+def _number(value: float | None, spec: str) -> str:
+    """``value`` formatted, ``-`` when it was not measured."""
+    return "-" if value is None else format(value, spec)
+
+
 def markdown(report: dict) -> str:
     m = report["machine"]
     machine = (f"{m.get('gpu')} ({m.get('gpu_memory_gib')} GiB, sm {m.get('compute_capability')}), driver "
@@ -297,7 +302,8 @@ def markdown(report: dict) -> str:
                   "| objects | precision | kernels | batch ms | step ms | images/s | peak GiB | host syncs / step |",
                   "|---|---|---|---|---|---|---|---|"]
         lines += [f"| {r['objects']} | {r['precision']} | {r['kernels']} | {r['batch_ms']:.1f} | {r['step_ms']:.1f} "
-                  f"| {r['images_per_second']:.0f} | {r['peak_gib'] or 0:.2f} | {r.get('host_syncs_per_step', '-')} |"
+                  f"| {r['images_per_second']:.0f} | {_number(r['peak_gib'], '.2f')} "
+                  f"| {_number(r.get('host_syncs_per_step'), '.1f')} |"
                   for r in report["nvs_speed"]["results"]]
     if "demo_training" in report:
         t = report["demo_training"]

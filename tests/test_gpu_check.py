@@ -49,6 +49,9 @@ def test_the_report_lists_machine_steps_speed_and_metrics():
     assert "100.0 steps/s" in text and '"psnr": 30.1' in text
     assert "| 10000 | 64 | True | 3021 | 2870 | 4.0 |" in text
     assert "| 8 | bf16 | autotuned | 2.0 | 38.0 | 800 | 3.25 | 0.0 |" in text
+    report["nvs_speed"]["results"][0]["peak_gib"] = None  # a CPU row, not profiled
+    report["nvs_speed"]["results"][0].pop("host_syncs_per_step")
+    assert "| 8 | bf16 | autotuned | 2.0 | 38.0 | 800 | - | - |" in gpu_check.markdown(report)
 
 
 def test_a_speed_step_is_summarised_by_its_cases_not_its_last_log_line(tmp_path):
