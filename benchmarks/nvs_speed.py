@@ -112,7 +112,6 @@ def run(
         raise ValueError(f"--timed-steps must be >= 1 and --warmup >= 0, got {timed_steps} and {warmup}")
     data = data or [embedded_dataset(n) for n in finetune_object_names()]
     base = config_from(FinetuneConfig, training, model=model_config(model, None, None, training.init_from))
-    output.mkdir(parents=True, exist_ok=True)
     rows = []
     for count in objects:
         for precision in precisions:
@@ -127,6 +126,7 @@ def run(
             "timed_steps": timed_steps}
     table = markdown(rows)
     print(table)
+    output.mkdir(parents=True, exist_ok=True)
     (output / "nvs_speed.json").write_text(json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
     (output / "nvs_speed.md").write_text(f"{json.dumps({k: v for k, v in meta.items() if k != 'model'})}\n\n{table}\n")
     return rows

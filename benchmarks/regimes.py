@@ -256,7 +256,7 @@ def main() -> None:
                 final, metrics = run_method(method, data, runs, regime, args.iterations, share, power,
                                             pipeline_set, args.tag, args.seed)
             finals[data.name, regime, name] = final
-            rows.append({"object": data.name, "regime": regime, "method": name,
+            rows.append({"object": data.name, "regime": regime, "method": name, "run": str(runs / name),
                          "minutes": (time.perf_counter() - started) / 60,
                          **{k: metrics.get(k) for k in (*METRICS, "real_images", "synthetic_images", "real_share")}})
             print(json.dumps(rows[-1]), flush=True)

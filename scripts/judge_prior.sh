@@ -18,7 +18,6 @@ PYTHON="${3:-.venv/bin/python}"
 export OMP_NUM_THREADS=1 PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}"
 RESULTS=benchmarks/results/regimes/$TAG
 OBJECTS=(src/diamond_sss/assets/data/demo torus:soap blob:marble)
-FOLDERS=(demo torus_soap_64px_64spp blob_marble_64px_64spp)
 regimes() {  # TAG_SUFFIX PIPELINE_SETTINGS...
     local suffix="$1"
     shift
@@ -33,9 +32,7 @@ regimes _once augment=nvs generated_as_real=102 synthetic_weight=1 &
 once=$!
 wait "$norelight"  # each wait returns its run's status: set -e stops here if one failed
 wait "$once"
-runs=()
-for folder in "${FOLDERS[@]}"; do
-    runs+=("outputs/benchmarks/regimes_counts/$folder/views5_lights6/full_$TAG")
-done
+mapfile -t runs < <("$PYTHON" -c 'import json, sys; print(*(r["run"] for r in json.load(open(sys.argv[1]))["rows"]), sep="\n")' \
+    "$RESULTS/full/regimes.json")  # the pipeline folders regimes.py wrote
 "$PYTHON" benchmarks/generated_views.py --tag "$TAG" --runs "${runs[@]}"
 echo "judge_prior: tables in $RESULTS/ and benchmarks/results/generated_views/$TAG.md"

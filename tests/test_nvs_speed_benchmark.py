@@ -9,6 +9,7 @@ from repo_scripts import load_script
 
 from diamond_sss.cli.nvs_commands import NVSModelOptions
 from diamond_sss.data.embedded import embedded_dataset, finetune_object_names
+from diamond_sss.errors import DataError
 
 nvs_speed = load_script("benchmarks/nvs_speed.py")
 TINY = NVSModelOptions(image_size=16, block_out_channels=(8, 16, 16), layers_per_block=1)
@@ -36,3 +37,11 @@ def test_a_run_without_timed_steps_is_refused(tmp_path):
     with pytest.raises(ValueError, match="--timed-steps must be >= 1"):
         nvs_speed.run(timed_steps=0, output=tmp_path, model=TINY)
     assert not any(tmp_path.iterdir())
+
+
+def test_a_missing_data_folder_is_named_and_leaves_no_output(tmp_path):
+    output = tmp_path / "speed"
+    with pytest.raises(DataError, match="missing"):
+        nvs_speed.run(data=[tmp_path / "missing"], objects=(1,), precisions=("no",), kernels=("deterministic",),
+                      timed_steps=1, warmup=0, output=output, model=TINY)
+    assert not output.exists()

@@ -21,7 +21,7 @@ def profile_steps(step: Callable[[int], object], device: torch.device, first: in
     """Profile ``step(i)`` for ``i`` in ``[first, first + steps)``: torch.profiler's operators by self CPU time (on
     CUDA also by self CUDA time and the kernels launched), and on CUDA every host sync with its call site
     (``torch.cuda.set_sync_debug_mode("warn")``: a sync stops the host from queueing ahead of the GPU). Writes the
-    tables to ``path``; returns ``operators_per_step``, ``cuda_kernels_per_step`` and ``host_syncs_per_step``."""
+    tables to ``path`` (its folder made if missing); returns ``operators_per_step``, ``cuda_kernels_per_step`` and ``host_syncs_per_step``."""
     from torch.profiler import ProfilerActivity, profile
 
     cuda = device.type == "cuda"
@@ -52,6 +52,7 @@ def profile_steps(step: Callable[[int], object], device: torch.device, first: in
                 averages.table(sort_by="self_cpu_time_total", row_limit=30)]
     if cuda:
         sections.append(averages.table(sort_by="self_cuda_time_total", row_limit=30))
+    path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(sections) + "\n")
     return counts
 
