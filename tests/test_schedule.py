@@ -9,7 +9,7 @@ import pytest
 from diamond_sss.cli.main import main
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.training.config import scale_schedule, schedule_for, short_schedule
-from diamond_sss.training.overrides import load_run_config, scaled_run_schedule
+from diamond_sss.training.overrides import load_run_config, make_config, scaled_run_schedule
 
 DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, the short-run model and decay (issue 17;
     # the light map 64 px since session 13, reused for 10 steps since session 14)
@@ -32,6 +32,15 @@ def test_demo_overrides_are_unchanged():
         assert scaled["lr_decay_step"] == 7 * n // 10  # the step decay at 70% of the run
         assert scaled["sss_lr_warmup_steps"] == n // 10  # the MLP's warm-up over the first 10%
     assert short_schedule(1000, dense=True) == {**DEMO_OVERRIDES_1000, "batch_size": 2, "sss_angular_inputs": True}
+
+
+def test_only_a_long_dense_run_trains_the_sh_visibility_by_ray_tracing_alone():
+    assert "sss_visibility_gradient" not in short_schedule(9999, dense=True)
+    assert "sss_visibility_gradient" not in short_schedule(20000)  # sparse: not measured, the method's default
+    long_run = short_schedule(10000, dense=True)
+    assert long_run["sss_visibility_gradient"] is False
+    assert make_config("diamond", overrides=long_run).shading.sss_visibility_gradient is False
+    assert make_config("diamond").shading.sss_visibility_gradient is True  # the presets keep the method's
 
 
 def test_scale_schedule_rounds_down_keeps_zero_and_other_keys():

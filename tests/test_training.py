@@ -15,6 +15,7 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.evaluation.evaluate import evaluate_scene
 from diamond_sss.gaussians.ply import import_ply
+from diamond_sss.scene.io import scene_from_tensors, scene_tensors
 from diamond_sss.training.checkpoint import optimizer_from_tensors, optimizer_to_tensors
 from diamond_sss.training.config import PRESETS, TrainConfig
 from diamond_sss.training.overrides import make_config
@@ -328,3 +329,21 @@ def test_the_mlp_learning_rate_warms_up_then_decays(capture, tmp_path):
         rates.append(optimizers["mlp"].param_groups[0]["lr"])
     assert rates == pytest.approx([0.001, 0.002, 0.004, 0.004, 0.002])
     assert optimizers["light"].param_groups[0]["lr"] == pytest.approx(0.5 * cfg.lr.light)  # not warmed up
+
+
+@pytest.mark.parametrize("photometric", [True, False])
+def test_the_sh_visibility_learns_from_the_photometric_loss_only_when_asked(capture, photometric):
+    cfg = make_config("diamond", overrides={**TINY, "sss_visibility_gradient": photometric})
+    dataset = OLATDataset(capture)
+    trainer = Trainer(cfg, [ImageSource(dataset)], None, show_progress=False)
+    built = trainer.build_scene()
+    resumed = scene_from_tensors(scene_tensors(built), cfg.shading)  # as a resumed run rebuilds it
+    for scene in (built, resumed):
+        sh = scene.gaussians.params["visibility_sh"]
+        camera, light = dataset.cameras[0], dataset.lights[0]
+        scene.render(camera.w2c[None], camera.K[None], camera.width, camera.height, light.position[None],
+                     light.intensity[None]).radiance.sum().backward()
+        assert (sh.grad is not None and sh.grad.abs().sum() > 0) == photometric
+        sh.grad = None
+        trainer.raytrace_term(scene, light.position[None], step=0).backward()
+        assert sh.grad.abs().sum() > 0  # the ray-traced term trains it either way

@@ -24,6 +24,7 @@ class SceneSettings(Protocol):
     light_falloff: str
     sss_angular_inputs: bool
     sss_light_depth: int
+    sss_visibility_gradient: bool
 
 
 def scene_tensors(scene: RelightableScene) -> dict[str, Tensor]:
@@ -38,7 +39,8 @@ def scene_from_tensors(tensors: dict[str, Tensor], cfg: SceneSettings) -> Religh
                                               if k.startswith(prefix)})
     scene = RelightableScene(model, sss_width=cfg.sss_width, light_init=cfg.light_init,
                              mixed_precision=cfg.mixed_precision, light_falloff=cfg.light_falloff,
-                             sss_angular_inputs=cfg.sss_angular_inputs, sss_light_depth=cfg.sss_light_depth)
+                             sss_angular_inputs=cfg.sss_angular_inputs, sss_light_depth=cfg.sss_light_depth,
+                             sss_visibility_gradient=cfg.sss_visibility_gradient)
     scene.load_state_dict(tensors)
     return scene
 

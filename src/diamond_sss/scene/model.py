@@ -5,7 +5,8 @@ Per image ``b`` (a camera and a point light) and Gaussian ``i``:
 1. ``w_v = normalize(c_b - mu_i)``, ``w_l = normalize(p_b - mu_i)``, ``d = |p_b - mu_i|``;
    ``V_SH = clamp(SH_i(w_l) + 0.5, 0, 1)``; with ``sss_light_depth = S > 0`` also ``t_i``, the depth below the
    lit surface from an ``S x S`` depth map rendered at the light (:mod:`diamond_sss.shading.light_depth`).
-2. The SSS MLP gives the residual radiance ``R_i`` and the incident light ``L_in,i``.
+2. The SSS MLP gives the residual radiance ``R_i`` and the incident light ``L_in,i`` (with
+   ``sss_visibility_gradient`` off it sees ``V_SH`` without its gradient: only ``L_raytrace`` trains ``V_SH``).
 3. The G-buffer (normal, base colour, roughness, metallic, s, V_SH, L_in, R) is alpha-blended with the
    Gaussians' per-image features, with expected depth and alpha.
 4. :func:`diamond_sss.shading.deferred.deferred_shade` turns it into linear radiance.
@@ -49,7 +50,7 @@ class RelightableScene(nn.Module):
     def __init__(self, gaussians: GaussianModel, sss_width: int = 32, light_init: float = -1.0,
                  scene_center: Tensor | None = None, scene_radius: float = 1.0,
                  mixed_precision: bool = False, light_falloff: str = "none", sss_angular_inputs: bool = False,
-                 sss_light_depth: int = 0) -> None:
+                 sss_light_depth: int = 0, sss_visibility_gradient: bool = True) -> None:
         super().__init__()
         if light_falloff not in LIGHT_FALLOFFS:
             raise ValueError(f"light_falloff must be one of {LIGHT_FALLOFFS}, got {light_falloff!r}")
@@ -59,6 +60,7 @@ class RelightableScene(nn.Module):
         self.mlp = SSSResidualMLP(SSSMLPConfig(width=sss_width, angular_inputs=sss_angular_inputs,
                                                light_depth_input=sss_light_depth > 0))
         self.light_depth_size = sss_light_depth
+        self.visibility_gradient = sss_visibility_gradient
         self.log_light_scale = nn.Parameter(torch.tensor(float(light_init)))
         self.register_buffer("scene_center", torch.zeros(3) if scene_center is None else scene_center.float().clone())
         self.register_buffer("scene_radius", torch.tensor(float(scene_radius)))
@@ -83,13 +85,14 @@ class RelightableScene(nn.Module):
         batch, num = viewmats.shape[0], means.shape[0]
         geometry = light_geometry(means, camera_centers(viewmats), light_positions)
         visibility = visibility_from_sh(g.visibility_sh, geometry.light_dirs).unsqueeze(-1)
+        mlp_visibility = visibility if self.visibility_gradient else visibility.detach()
         normals = g.normals
         radius = self.scene_radius
         light_depth = self.light_depth(light_positions, cached_lights) / radius if self.light_depth_size else None
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.mixed_precision and means.is_cuda):
             sss = self.mlp(((means - self.scene_center) / radius).expand(batch, num, 3),
                            g.quats.expand(batch, num, 4), (g.scales / radius).expand(batch, num, 3),
-                           geometry.view_dirs, geometry.light_dirs, normals.expand(batch, num, 3), visibility,
+                           geometry.view_dirs, geometry.light_dirs, normals.expand(batch, num, 3), mlp_visibility,
                            geometry.light_distance / radius, light_depth)
         materials = {"base_color": g.base_color, "roughness": g.roughness, "metallic": g.metallic,
                      "subsurface": g.subsurface}

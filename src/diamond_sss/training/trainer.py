@@ -189,7 +189,8 @@ class Trainer:
                                 mixed_precision=shading.mixed_precision,
                                 light_falloff=shading.light_falloff,
                                 sss_angular_inputs=shading.sss_angular_inputs,
-                                sss_light_depth=shading.sss_light_depth).to(self.device)
+                                sss_light_depth=shading.sss_light_depth,
+                                sss_visibility_gradient=shading.sss_visibility_gradient).to(self.device)
 
     def calibrated_light_init(self, max_images: int = 64) -> float:
         """``log`` of a global light scale matched to the capture's units (Tab. 3's ``light_init`` = -1 is
