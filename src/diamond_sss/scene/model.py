@@ -6,7 +6,8 @@ Per image ``b`` (a camera and a point light) and Gaussian ``i``:
    ``V_SH = clamp(SH_i(w_l) + 0.5, 0, 1)``; with ``sss_light_depth = S > 0`` also ``t_i``, the depth below the
    lit surface from an ``S x S`` depth map rendered at the light (:mod:`diamond_sss.shading.light_depth`).
 2. The SSS MLP gives the residual radiance ``R_i`` and the incident light ``L_in,i`` (with
-   ``sss_visibility_gradient`` off it sees ``V_SH`` without its gradient: only ``L_raytrace`` trains ``V_SH``).
+   ``sss_visibility_gradient`` off it sees ``V_SH`` without its gradient: the photometric loss does not train
+   ``V_SH``, ``L_raytrace`` does).
 3. The G-buffer (normal, base colour, roughness, metallic, s, V_SH, L_in, R) is alpha-blended with the
    Gaussians' per-image features, with expected depth and alpha.
 4. :func:`diamond_sss.shading.deferred.deferred_shade` turns it into linear radiance.

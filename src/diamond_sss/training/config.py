@@ -119,7 +119,8 @@ class Shading:
     sss_light_depth_every: int = _key(1, "training steps a light's depth map is reused for: rendered at the light's "
                                       "first use in each window of this many steps (1: at every use)")
     sss_visibility_gradient: bool = _key(True, "let the photometric loss train the SH visibility through the MLP's "
-                                         "visibility input (false: only the ray-traced term L_raytrace trains it)")
+                                         "visibility input (false: the ray-traced term L_raytrace and, when on, the "
+                                         "incident-light tie train it)")
     light_falloff: str = _key("none", "point-light falloff in the shading: none (as SSS-3DGS: the MLP learns it "
                               "from the light distance) | inverse_square (relative to the scene centre)")
 
@@ -318,6 +319,7 @@ training lights in long runs (demo object, 10k steps, three seeds: +0.29 dB mean
 most of it under the low novel lights; as much as freezing the visibility, which drops the method's learned
 visibility). At 1000 steps it costs 0.12 dB (three seeds), so shorter runs keep the photometric gradient
 (benchmarks/RESULTS.md, issue 17)."""
+
 
 SCHEDULE_FLOORS: dict[str, int] = {"densify.refine_every": 10, "densify.reset_every": 200}
 """Fewest steps a scaled run keeps for processes that take optimisation steps, whatever the run's length:
