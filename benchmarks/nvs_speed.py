@@ -33,6 +33,7 @@ from diamond_sss.data.embedded import embedded_dataset, finetune_object_names
 from diamond_sss.diffusion.common.runtime import kernel_settings
 from diamond_sss.diffusion.nvs.config import FinetuneConfig
 from diamond_sss.diffusion.nvs.train import build_training, step_batch, training_step
+from diamond_sss.errors import DataError
 from diamond_sss.utils.profiling import profile_steps, synchronize
 
 RESULTS = Path(__file__).resolve().parent / "results" / "nvs_speed"
@@ -152,4 +153,7 @@ def markdown(rows: list[dict]) -> str:
 
 
 if __name__ == "__main__":
-    tyro.cli(run)
+    try:
+        tyro.cli(run)
+    except DataError as exc:
+        raise SystemExit(f"nvs_speed: --data: {exc}") from exc

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
-from repo_scripts import load_script
+from repo_scripts import ROOT, load_script
 
 from diamond_sss.cli.nvs_commands import NVSModelOptions
 from diamond_sss.data.embedded import embedded_dataset, finetune_object_names
@@ -44,4 +46,9 @@ def test_a_missing_data_folder_is_named_and_leaves_no_output(tmp_path):
     with pytest.raises(DataError, match="missing"):
         nvs_speed.run(data=[tmp_path / "missing"], objects=(1,), precisions=("no",), kernels=("deterministic",),
                       timed_steps=1, warmup=0, output=output, model=TINY)
+    assert not output.exists()
+    script = subprocess.run([sys.executable, "benchmarks/nvs_speed.py", "--data", str(tmp_path / "missing"),
+                             "--output", str(output)], capture_output=True, text=True, cwd=ROOT, check=False)
+    assert script.returncode == 1 and "Traceback" not in script.stderr
+    assert f"nvs_speed: --data: data folder not found: {tmp_path / 'missing'}" in script.stderr
     assert not output.exists()
