@@ -12,6 +12,12 @@ JOBS="${JOBS:-2}"
 read -r -a SIZES <<< "${SIZES:-256 128 64}"
 STEPS=("$@")
 [[ $# -gt 0 ]] || STEPS=(1000 3000)
+for size in "${SIZES[@]}"; do
+    [[ "$size" =~ ^(64|128|256)$ ]] || { echo "resolution_quality: SIZES: $size px is not rendered by scripts/make_resolution_data.sh (64, 128, 256)" >&2; exit 2; }
+done
+for steps in "${STEPS[@]}"; do
+    [[ "$steps" =~ ^[1-9][0-9]*$ ]] || { echo "resolution_quality: STEPS: '$steps' is not a positive step count" >&2; exit 2; }
+done
 DATA=outputs/resolution
 [[ -d "$DATA/bunny_wax_256px_noise" ]] || scripts/make_resolution_data.sh "$PYTHON"
 export OMP_NUM_THREADS=1 PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}"
