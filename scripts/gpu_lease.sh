@@ -1,28 +1,27 @@
 #!/usr/bin/env bash
 # scripts/gpu_check.py in one call on a lent GPU machine without network (the device tool of environment.md: the
 # checkout and the carried paths travel, 64 MiB in all; what is left in $OUT comes back, at most 8 files).
-# It installs the carried wheels (.whl/), unpacks outputs/priors.tgz when it was carried (scripts/make_prior_data.sh
-# writes it) and then trains the novel-view prior on those captures, runs gpu_check.py with the arguments given,
-# and leaves in $OUT: report.md, the fp16 prior (nvs_prior_model/, when trained) and everything else packed into
-# gpu_check.tgz (logs, report.json, speed tables, the prior's train_log.jsonl).
-# Carry [".whl", "outputs/priors.tgz"] (with the checkout ~53 MiB). Examples:
+# It installs the carried wheels (outputs/wheels/, which scripts/fetch_gpu_wheels.sh fills here), unpacks
+# outputs/priors.tgz when it was carried (scripts/make_prior_data.sh writes it) and then trains the novel-view prior on
+# those captures, runs gpu_check.py with the arguments given, and leaves in $OUT: report.md, the fp16 prior
+# (nvs_prior_model/, when trained) and everything else packed into gpu_check.tgz (logs, report.json, speed tables,
+# the prior's train_log.jsonl).
+# Carry ["outputs/wheels", "outputs/priors.tgz"] (with the checkout ~53 MiB). Examples:
 #   scripts/gpu_lease.sh --skip suite speed speed-raster train eval --prior-minutes 6   # CUDA tests + the prior
 #   scripts/gpu_lease.sh --skip cuda-tests suite --iterations 10000                      # speed + a 10k demo run
 #   scripts/gpu_lease.sh --skip cuda-tests suite speed-raster train eval nvs-prior       # speed.py --profile alone
 # Going on with an earlier lease's prior (its nvs_prior_model/, 13 MiB, copied to outputs/nvs_prior_init): the
 # checkout, all wheels, the captures and it exceed 64 MiB, so carry the wheels without optuna and the database
-# packages (~13 MiB; only the suite and the tuning need them):
-#   mkdir -p outputs/whl_lease && cp .whl/*.whl outputs/whl_lease/ && \
-#       rm outputs/whl_lease/{optuna,sqlalchemy,alembic,greenlet,mako,colorlog}-*.whl
-# and carry ["outputs/whl_lease", "outputs/priors.tgz", "outputs/nvs_prior_init"] (~63 MiB with the checkout):
-#   WHEELS=outputs/whl_lease OUT=$OUT scripts/gpu_lease.sh --skip suite speed speed-raster train eval \
+# packages (~13 MiB; only the suite and the tuning need them): `LEAN=1 scripts/fetch_gpu_wheels.sh .venv/bin/python
+# outputs/wheels_lean`, and carry ["outputs/wheels_lean", "outputs/priors.tgz", "outputs/nvs_prior_init"] (~63 MiB):
+#   WHEELS=outputs/wheels_lean OUT=$OUT scripts/gpu_lease.sh --skip suite speed speed-raster train eval \
 #       --prior-minutes 6 --prior-init outputs/nvs_prior_init   # CUDA tests, the prior's step profiled, the prior
 set -uo pipefail
 cd "$(dirname "$0")/.."
 : "${OUT:?OUT must name the folder whose files come back}"
-wheels="${WHEELS:-.whl}"  # the carried wheels (environment.md)
+wheels="${WHEELS:-outputs/wheels}"  # the carried wheels (scripts/fetch_gpu_wheels.sh)
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$wheels"/*.whl \
-    || { echo "gpu_lease: the wheels in $wheels/ did not install (carry them)" >&2; exit 1; }
+    || { echo "gpu_lease: the wheels in $wheels/ did not install (fill it with scripts/fetch_gpu_wheels.sh and carry it)" >&2; exit 1; }
 export PYTHONPATH="/tmp/site:$PWD/src" TORCH_EXTENSIONS_DIR=/tmp/torch_extensions
 priors=()
 if [[ -f outputs/priors.tgz ]]; then
