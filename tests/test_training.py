@@ -255,6 +255,21 @@ def test_densification_changes_the_gaussian_count(capture, tmp_path):
     assert result.num_gaussians > 300
 
 
+def test_opacities_reset_every_interval_while_densifying(capture):
+    """Every opacity is clamped to ``2 prune_opa`` after step 5 (``opacity_reset_interval`` 5) and not after step
+    10, which comes after densification stops (gsplat 1.5.3's ``DefaultStrategy`` never resets: gsplat#776)."""
+    cfg = make_config("sss3dgs", overrides={**TINY, "iterations": 11, "densify_until_iter": 8})
+    ceiling = 2.0 * cfg.densify.prune_opa
+    highest = {}
+
+    def record(done, scene, terms):
+        highest[done - 1] = float(scene.gaussians.opacities.detach().max())
+
+    Trainer(cfg, [ImageSource(OLATDataset(capture))], None, show_progress=False).run(on_step=record)
+    assert highest[4] > 5 * ceiling and highest[5] == pytest.approx(ceiling)
+    assert ceiling < highest[9] < highest[10]
+
+
 def test_cli_train_eval_render_export(capture, tmp_path, capsys):
     previous_umask = os.umask(0o027)
     try:

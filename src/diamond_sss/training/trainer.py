@@ -3,7 +3,8 @@
 One step: draw ``B`` (view, light) images (a pure function of the step, so resumed runs see the same
 batches), render them with deferred shading, add the objective's terms (photometric, regularisers,
 ray-traced visibility every ``raytrace_every`` steps, multi-view consistency), back-propagate, step Adam,
-and let gsplat's ``DefaultStrategy`` densify and prune (or keep the Gaussian count fixed).
+and let gsplat's ``DefaultStrategy`` densify and prune (or keep the Gaussian count fixed), resetting the
+opacities every ``reset_every`` steps while it densifies (:func:`opacity_reset_due`).
 Every random draw of step ``t`` comes from the streams of :mod:`diamond_sss.utils.rng` seeded with
 ``(seed, t)``: host streams for decisions taken in Python, device streams for tensors on the training device.
 The step never waits for the device: the loss terms stay there (:class:`LossLog`) and are read, and checked
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import torch
 from gsplat.strategy import DefaultStrategy
+from gsplat.strategy.ops import reset_opa
 from torch import Tensor
 from tqdm.auto import tqdm
 
@@ -38,7 +40,7 @@ from diamond_sss.shading.light_depth import CachedLights, LightMapCache
 from diamond_sss.shading.raytrace import raytraced_visibility
 from diamond_sss.shading.sh import visibility_from_sh
 from diamond_sss.training.checkpoint import resume_checkpoint, save_checkpoint
-from diamond_sss.training.config import TrainConfig
+from diamond_sss.training.config import Densification, TrainConfig
 from diamond_sss.training.lattice import unify_lattices
 from diamond_sss.training.loss_log import LossLog
 from diamond_sss.training.objective import TargetBatch, image_objective
@@ -98,6 +100,15 @@ run without writing the model."""
 def gaussian_optimizers(optimizers: dict[str, torch.optim.Optimizer]) -> dict[str, torch.optim.Optimizer]:
     """The per-Gaussian-parameter optimisers (what gsplat's strategies edit when they densify or prune)."""
     return {name: optimizers[name] for name in ("means", *GAUSSIAN_LR_KEYS)}
+
+
+def opacity_reset_due(step: int, densify: Densification) -> bool:
+    """3DGS's opacity reset (every opacity clamped to ``2 prune_opa`` and its Adam moments zeroed) after step
+    ``t``: ``0 < t < refine_stop_iter`` and ``t mod reset_every = 0``. gsplat 1.5.3's ``DefaultStrategy`` never
+    does it (its test ``step % reset_every == 0 & step > 0`` is a chained comparison ending in ``0 > 0``;
+    nerfstudio-project/gsplat#776), so the trainer does; the clamp is idempotent, a fixed gsplat resetting too
+    changes nothing."""
+    return 0 < step < densify.refine_stop_iter and step % densify.reset_every == 0
 
 
 class Trainer:
@@ -385,6 +396,9 @@ class Trainer:
         if self.strategy is not None and scene.gaussians.num_gaussians < cfg.gaussians.max_count:
             self.strategy.step_post_backward(scene.gaussians.params, gaussian_optimizers(optimizers),
                                              strategy_state, step, info, packed=False)
+        if self.strategy is not None and opacity_reset_due(step, cfg.densify):
+            reset_opa(scene.gaussians.params, gaussian_optimizers(optimizers), strategy_state,
+                      value=2.0 * cfg.densify.prune_opa)
         values = {k: v.detach() for k, v in terms.items()}
         values["total"] = total.detach()
         return values
