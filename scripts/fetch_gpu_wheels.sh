@@ -10,6 +10,8 @@ PYTHON="${1:-.venv/bin/python}"
 DEST="${2:-outputs/wheels}"
 packages=(gsplat tyro docstring-parser typeguard typing-extensions plyfile pytorch-msssim pypng diffusers)
 [[ "${LEAN:-0}" == 1 ]] || packages+=(optuna alembic colorlog sqlalchemy greenlet mako)
+"$PYTHON" -c "import pip" 2>/dev/null \
+    || { echo "fetch_gpu_wheels: $PYTHON does not run or has no pip (run make setup first, or name a Python)" >&2; exit 2; }
 mkdir -p "$DEST"
 for package in "${packages[@]}"; do
     if ! version=$("$PYTHON" -c "import importlib.metadata as m, sys; print(m.version(sys.argv[1]))" "$package" 2>/dev/null); then
