@@ -16,6 +16,8 @@ from diamond_sss.data.analytic import make_capture
 from diamond_sss.evaluation.evaluate import evaluate_scene
 from diamond_sss.gaussians.ply import import_ply
 from diamond_sss.scene.io import scene_from_tensors, scene_tensors
+from diamond_sss.scene.model import RelightableScene
+from diamond_sss.training.averaging import ParameterAverage, averaging_start
 from diamond_sss.training.checkpoint import optimizer_from_tensors, optimizer_to_tensors
 from diamond_sss.training.config import PRESETS, TrainConfig
 from diamond_sss.training.overrides import make_config
@@ -148,8 +150,6 @@ def test_resume_after_a_kill_matches_an_uninterrupted_run(capture, tmp_path):
 
 
 def test_reused_light_maps_resume_exactly_and_render_each_light_once_per_window(capture, tmp_path, monkeypatch):
-    from diamond_sss.scene.model import RelightableScene
-
     size = 12  # no other pass renders at this size
     light_map_renders = []
     render_geometry = RelightableScene.render_geometry
@@ -180,6 +180,62 @@ def test_reused_light_maps_resume_exactly_and_render_each_light_once_per_window(
     Trainer(every_step, [ImageSource(dataset)], tmp_path / "c", show_progress=False).run()
     c = load_safetensors(tmp_path / "c" / "model.safetensors")
     assert not torch.equal(a["gaussians.params.means"], c["gaussians.params.means"])  # the reuse changes the run
+
+
+def test_parameter_average_is_the_running_mean_and_keeps_the_last_integer_tensors():
+    steps = [{"w": torch.tensor([1.0, 2.0]) * k, "n": torch.tensor([k])} for k in (1, 2, 3, 4)]
+    average = ParameterAverage()
+    for tensors in steps:
+        average.add(tensors)
+    assert average.count == 4 and steps[0]["w"].tolist() == [1.0, 2.0]  # the inputs are not changed
+    assert torch.allclose(average.mean["w"], torch.tensor([2.5, 5.0])) and average.mean["n"].tolist() == [4]
+    with pytest.raises(ValueError, match="'w' changed shape"):
+        average.add({"w": torch.zeros(3), "n": torch.tensor([5])})
+    assert average.count == 4
+    # the window: the last 10% of 100 steps, but not before densification stops; none for 0
+    assert (averaging_start(100, 0.1, 50), averaging_start(100, 0.1, 95), averaging_start(100, 0.0, 0)) == (90, 95, 100)
+    with pytest.raises(ValueError, match=r"'schedule.average_last' must be in \[0, 1\), got 1.0"):
+        make_config(sets=["average_last=1"])
+
+
+def test_averaged_model_is_the_mean_of_the_last_steps_and_resumes_exactly(capture, tmp_path):
+    settings = {**TINY, "iterations": 6, "checkpoint_every": 2, "densify_until_iter": 3, "average_last": 0.5}
+    cfg = make_config("diamond", overrides=settings)
+    dataset = OLATDataset(capture)
+    seen: list[dict] = []
+
+    def keep(done, scene, terms):
+        seen.append({k: v.clone() for k, v in scene_tensors(scene).items()})
+
+    result = Trainer(cfg, [ImageSource(dataset)], tmp_path / "a", show_progress=False).run(on_step=keep)
+    a = load_safetensors(tmp_path / "a" / "model.safetensors")
+    assert result.averaged_steps == 3  # steps 4-6
+    assert json.loads((tmp_path / "a" / "train_summary.json").read_text())["averaged_steps"] == 3
+    for key, value in a.items():
+        if value.is_floating_point():
+            torch.testing.assert_close(value, torch.stack([s[key] for s in seen[3:]]).mean(0), rtol=1e-5, atol=1e-6)
+    assert not torch.equal(a["gaussians.params.means"], seen[-1]["gaussians.params.means"])
+    # killed after the checkpoint of step 4, whose mean holds one step, and resumed: the same model, bit for bit
+    with pytest.raises(_Killed):
+        _KilledTrainer(cfg, [ImageSource(dataset)], tmp_path / "b", show_progress=False).run()
+    Trainer(cfg, [ImageSource(dataset)], tmp_path / "b", show_progress=False).run(resume=True)
+    b = load_safetensors(tmp_path / "b" / "model.safetensors")
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    # a window that would begin while the Gaussians are densified begins when densification stops
+    longer = make_config("diamond", overrides={**settings, "average_last": 0.9})
+    assert Trainer(longer, [ImageSource(dataset)], None, show_progress=False).run().averaged_steps == 3
+
+
+def test_the_position_encoding_key_sizes_the_mlp_and_the_scene_reloads_with_it(capture):
+    cfg = make_config("diamond", overrides={**TINY, "sss_position_freqs": 0})
+    scene = Trainer(cfg, [ImageSource(OLATDataset(capture))], None, show_progress=False).build_scene()
+    assert scene.mlp.config.num_freqs == 0
+    assert scene.mlp.input_dim == RelightableScene(scene.gaussians).mlp.input_dim - 3 * 2 * 4  # 4 frequencies: 24 more
+    tensors = scene_tensors(scene)
+    assert scene_from_tensors(tensors, cfg.shading).mlp.config.num_freqs == 0
+    with pytest.raises(RuntimeError, match="size mismatch"):
+        scene_from_tensors(tensors, make_config("diamond", overrides=TINY).shading)
 
 
 def test_training_improves_the_fit(capture, tmp_path):

@@ -19,6 +19,7 @@ class SceneSettings(Protocol):
     """The configuration keys a scene is built with (``TrainConfig.shading`` has them)."""
 
     sss_width: int
+    sss_position_freqs: int
     light_init: float
     mixed_precision: bool
     light_falloff: str
@@ -37,7 +38,8 @@ def scene_from_tensors(tensors: dict[str, Tensor], cfg: SceneSettings) -> Religh
     prefix = "gaussians.params."
     model = GaussianModel.from_state_tensors({k[len(prefix):]: v for k, v in tensors.items()
                                               if k.startswith(prefix)})
-    scene = RelightableScene(model, sss_width=cfg.sss_width, light_init=cfg.light_init,
+    scene = RelightableScene(model, sss_width=cfg.sss_width, sss_position_freqs=cfg.sss_position_freqs,
+                             light_init=cfg.light_init,
                              mixed_precision=cfg.mixed_precision, light_falloff=cfg.light_falloff,
                              sss_angular_inputs=cfg.sss_angular_inputs, sss_light_depth=cfg.sss_light_depth,
                              sss_visibility_gradient=cfg.sss_visibility_gradient)

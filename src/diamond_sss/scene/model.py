@@ -48,7 +48,8 @@ class SceneRender:
 class RelightableScene(nn.Module):
     """Gaussians, the SSS residual MLP and the learnable global light intensity ``exp(log_light_scale)``."""
 
-    def __init__(self, gaussians: GaussianModel, sss_width: int = 32, light_init: float = -1.0,
+    def __init__(self, gaussians: GaussianModel, sss_width: int = 32, sss_position_freqs: int = 4,
+                 light_init: float = -1.0,
                  scene_center: Tensor | None = None, scene_radius: float = 1.0,
                  mixed_precision: bool = False, light_falloff: str = "none", sss_angular_inputs: bool = False,
                  sss_light_depth: int = 0, sss_visibility_gradient: bool = True) -> None:
@@ -58,7 +59,8 @@ class RelightableScene(nn.Module):
         if sss_light_depth < 0:
             raise ValueError(f"sss_light_depth is a depth map side in px (0: off), got {sss_light_depth}")
         self.gaussians = gaussians
-        self.mlp = SSSResidualMLP(SSSMLPConfig(width=sss_width, angular_inputs=sss_angular_inputs,
+        self.mlp = SSSResidualMLP(SSSMLPConfig(width=sss_width, num_freqs=sss_position_freqs,
+                                               angular_inputs=sss_angular_inputs,
                                                light_depth_input=sss_light_depth > 0))
         self.light_depth_size = sss_light_depth
         self.visibility_gradient = sss_visibility_gradient

@@ -6,6 +6,7 @@ Scene trainer (:func:`save_checkpoint`), layout of ``<run>/checkpoints``::
     step_00000500/scene.safetensors      raw Gaussian parameters, MLP weights, log light scale
     step_00000500/optim.safetensors      Adam moments of every optimiser, keyed ``<optimizer>/<slot>``
     step_00000500/strategy.safetensors   densification accumulators (when present)
+    step_00000500/average.safetensors    the running mean of the scene tensors (``schedule.average_last``, when begun)
     step_00000500/state.json             step, optimiser hyperparameters, strategy scalars
     latest.json                          {"step": 500, "dir": "step_00000500"}
 
@@ -71,6 +72,7 @@ class Checkpoint:
     optimizers: dict[str, dict]
     strategy: dict
     extra: dict
+    average: dict[str, Tensor]
 
 
 def optimizer_to_tensors(name: str, optimizer: torch.optim.Optimizer) -> tuple[dict[str, Tensor], dict]:
@@ -103,8 +105,10 @@ def optimizer_from_tensors(name: str, tensors: dict[str, Tensor], meta: dict) ->
 
 
 def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
-                    optimizers: dict[str, torch.optim.Optimizer], strategy_state: dict, extra: dict) -> Path:
-    """Write checkpoint ``step`` atomically and keep the newest :data:`KEEP_CHECKPOINTS`."""
+                    optimizers: dict[str, torch.optim.Optimizer], strategy_state: dict, extra: dict,
+                    average: dict[str, Tensor] | None = None) -> Path:
+    """Write checkpoint ``step`` atomically and keep the newest :data:`KEEP_CHECKPOINTS` (``average``: the running
+    mean of the scene tensors, when there is one)."""
     root = Path(run_dir) / "checkpoints"
     root.mkdir(parents=True, exist_ok=True)
     name = step_folder_name(step)
@@ -123,6 +127,8 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
         strategy_scalars = {k: v for k, v in strategy_state.items() if not torch.is_tensor(v) and v is not None}
         if strategy_tensors:
             atomic_save_safetensors(tmp / "strategy.safetensors", strategy_tensors)
+        if average:
+            atomic_save_safetensors(tmp / "average.safetensors", average)
         atomic_write_json(tmp / "state.json", {"step": step, "optimizers": optim_meta,
                                                "strategy": strategy_scalars, "extra": extra})
         final = root / name
@@ -191,8 +197,9 @@ def load_checkpoint(folder: Path) -> Checkpoint:
     strategy = dict(meta.get("strategy", {}))
     if (folder / "strategy.safetensors").is_file():
         strategy.update(load_safetensors(folder / "strategy.safetensors"))
+    average = load_safetensors(folder / "average.safetensors") if (folder / "average.safetensors").is_file() else {}
     return Checkpoint(step=step, scene=load_safetensors(folder / "scene.safetensors"),
-                      optimizers=optimizers, strategy=strategy, extra=meta.get("extra", {}))
+                      optimizers=optimizers, strategy=strategy, extra=meta.get("extra", {}), average=average)
 
 
 def save_accelerate_checkpoint(

@@ -38,6 +38,9 @@ class Schedule:
     iterations: int = _key(10_000, "training steps")
     batch_size: int = _key(4, "images per training step")
     seed: int = _key(0, "seed of the regime selection, initialisation and every random draw")
+    average_last: float = _key(0.0, "fraction of the run's last steps over which every scene tensor is averaged "
+                               "(uniform mean, from densification's end at the earliest); the saved model is the "
+                               "mean (0: the last step's parameters)")
 
 
 @dataclass
@@ -108,6 +111,8 @@ class Shading:
     """The subsurface-scattering MLP, the light and the background (a scene is built from this group)."""
 
     sss_width: int = _key(32, "hidden width of the subsurface-scattering MLP")
+    sss_position_freqs: int = _key(4, "frequencies of the positional encoding of the Gaussian centre fed to the MLP "
+                                   "(0: the raw centre only)")
     light_init: float = _key(-1.0, "initial log light scale (when not calibrated from the data)")
     light_init_from_data: bool = _key(True, "calibrate the initial light scale from the images")
     random_background: bool = _key(False, "train on random background colours")

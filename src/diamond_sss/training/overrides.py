@@ -134,7 +134,7 @@ POSITIVE_KEYS = ("schedule.iterations", "schedule.batch_size", "gaussians.count"
                  "shading.sss_width", "shading.sss_light_depth_every", "runtime.checkpoint_every", "runtime.log_every",
                  "densify.refine_every", "raytrace.every", "multiview.target_downscale")
 
-NON_NEGATIVE_INT_KEYS = ("shading.sss_light_depth", "lr.sss_warmup_steps", "lr.position_delay_steps")
+NON_NEGATIVE_INT_KEYS = ("shading.sss_light_depth", "shading.sss_position_freqs", "lr.sss_warmup_steps", "lr.position_delay_steps")
 """Sizes and step counts where 0 means off."""
 
 CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"), "gaussians.hull_masks": ("real", "all"),
@@ -160,6 +160,8 @@ def validate_config(config: TrainConfig) -> None:
     device = config.runtime.device
     if device not in ("auto", "cpu", "cuda") and not device.startswith("cuda:"):
         raise ValueError(f"config key 'runtime.device' must be auto|cpu|cuda[:i], got '{device}'")
+    if not 0 <= config.schedule.average_last < 1:
+        raise ValueError(f"config key 'schedule.average_last' must be in [0, 1), got {config.schedule.average_last}")
     if config.runtime.downscale < 1:
         raise ValueError(f"config key 'runtime.downscale' must be >= 1, got {config.runtime.downscale}")
 

@@ -4,7 +4,9 @@ One step: draw ``B`` (view, light) images (a pure function of the step, so resum
 batches), render them with deferred shading, add the objective's terms (photometric, regularisers,
 ray-traced visibility every ``raytrace_every`` steps, multi-view consistency), back-propagate, step Adam,
 and let gsplat's ``DefaultStrategy`` densify and prune (or keep the Gaussian count fixed), resetting the
-opacities every ``reset_every`` steps while it densifies (:func:`opacity_reset_due`).
+opacities every ``reset_every`` steps while it densifies (:func:`opacity_reset_due`). With
+``schedule.average_last`` the saved model is the mean of the scene tensors over the run's last steps
+(:mod:`diamond_sss.training.averaging`).
 Every random draw of step ``t`` comes from the streams of :mod:`diamond_sss.utils.rng` seeded with
 ``(seed, t)``: host streams for decisions taken in Python, device streams for tensors on the training device.
 The step never waits for the device: the loss terms stay there (:class:`LossLog`) and are read, and checked
@@ -39,6 +41,7 @@ from diamond_sss.scene.model import RelightableScene
 from diamond_sss.shading.light_depth import CachedLights, LightMapCache
 from diamond_sss.shading.raytrace import raytraced_visibility
 from diamond_sss.shading.sh import visibility_from_sh
+from diamond_sss.training.averaging import ParameterAverage, averaging_start
 from diamond_sss.training.checkpoint import resume_checkpoint, save_checkpoint
 from diamond_sss.training.config import Densification, TrainConfig
 from diamond_sss.training.lattice import unify_lattices
@@ -88,6 +91,7 @@ class TrainResult:
     num_gaussians: int
     final_loss: float
     history: list[dict] = field(default_factory=list)
+    averaged_steps: int = 0
 
 
 StepCallback = Callable[[int, RelightableScene, dict[str, Tensor]], bool | None]
@@ -195,7 +199,8 @@ class Trainer:
         model = GaussianModel.from_points(points.points, points.colors, points.normals, generator=generator)
         shading = cfg.shading
         light_init = self.calibrated_light_init() if shading.light_init_from_data else shading.light_init
-        return RelightableScene(model, sss_width=shading.sss_width, light_init=light_init,
+        return RelightableScene(model, sss_width=shading.sss_width, sss_position_freqs=shading.sss_position_freqs,
+                                light_init=light_init,
                                 scene_center=self.bounds.center, scene_radius=self.bounds.radius,
                                 mixed_precision=shading.mixed_precision,
                                 light_falloff=shading.light_falloff,
@@ -424,10 +429,19 @@ class Trainer:
                     self.scene = read_scene(self.run_dir / "model.safetensors", cfg.shading, self.device)
                     return TrainResult(steps=finished["steps"], seconds=finished["seconds"],
                                        num_gaussians=finished["num_gaussians"], final_loss=finished["final_loss"],
-                                       history=finished.get("history", []))
+                                       history=finished.get("history", []),
+                                       averaged_steps=finished.get("averaged_steps", 0))
             self.run_dir.mkdir(parents=True, exist_ok=True)
             atomic_write_json(self.run_dir / "config.json", cfg.to_dict())
-        scene, optimizers, strategy_state, start_step, history, elapsed = self._start(resume, scene, earlier_run)
+        scene, optimizers, strategy_state, start_step, history, elapsed, average = self._start(
+            resume, scene, earlier_run)
+        average_from = averaging_start(cfg.schedule.iterations, cfg.schedule.average_last,
+                                       cfg.densify.refine_stop_iter if self.strategy is not None else 0)
+        if average.count != max(start_step - average_from, 0):  # a resumed run given another length
+            logger.warning("%s: the parameter average holds %d steps where this run's window (from step %d) "
+                           "holds %d: it restarts at step %d", self.run_dir, average.count, average_from,
+                           max(start_step - average_from, 0), start_step)
+            average = ParameterAverage()
         if self.light_maps is not None:
             self.light_maps.clear()
         if self.strategy is not None:
@@ -445,6 +459,8 @@ class Trainer:
             try:
                 terms = self.training_step(scene, optimizers, strategy_state, step)
                 self.loss_log.record(step, terms)
+                if step >= average_from:
+                    average.add(scene_tensors(scene))
             except Exception:
                 self.loss_log.flush()  # a non-finite loss before the failure is the better diagnosis
                 raise
@@ -467,15 +483,19 @@ class Trainer:
             if checkpoint_due:
                 save_checkpoint(self.run_dir, done, scene_tensors(scene), optimizers, strategy_state,
                                 {"init_source": self.init_source, "history": history,
-                                 "seconds": time.perf_counter() - started})
+                                 "seconds": time.perf_counter() - started, "averaged_steps": average.count},
+                                average=average.mean)
                 if self.light_maps is not None:  # a run resumed here starts with no light maps either
                     self.light_maps.clear()
             if last:
                 break
         bar.close()
+        if average.count:
+            scene.load_state_dict(average.mean)
+            logger.info("the model is the mean of the last %d steps' parameters", average.count)
         result = TrainResult(steps=done, seconds=time.perf_counter() - started,
                              num_gaussians=scene.gaussians.num_gaussians, final_loss=values["total"],
-                             history=history)
+                             history=history, averaged_steps=average.count)
         if writer is not None:
             writer.close()
         if self.run_dir is not None:
@@ -483,7 +503,7 @@ class Trainer:
         return result
 
     def _start(self, resume: bool, scene: RelightableScene | None, earlier_run: bool) -> tuple:
-        """The scene, optimisers, strategy state, first step, history and seconds already spent.
+        """The scene, optimisers, strategy state, first step, history, seconds already spent and parameter average.
 
         Resuming a folder that an earlier run left without a checkpoint says so (a new folder is silent).
         """
@@ -496,7 +516,7 @@ class Trainer:
                 scene = self.build_scene()
             else:
                 self.init_source = "given"
-            return scene, self.build_optimizers(scene), self._initial_strategy_state(), 0, [], 0.0
+            return scene, self.build_optimizers(scene), self._initial_strategy_state(), 0, [], 0.0, ParameterAverage()
         checkpoint, loaded = found
         scene = scene_from_tensors(loaded.scene, self.cfg.shading).to(self.device)
         optimizers = self.build_optimizers(scene)
@@ -507,8 +527,10 @@ class Trainer:
                                for k, v in loaded.strategy.items()})
         logger.info("%s: resuming from step %d (%s)", self.run_dir, loaded.step, checkpoint)
         self.init_source = loaded.extra.get("init_source", "checkpoint")
+        average = ParameterAverage({k: v.to(self.device) for k, v in loaded.average.items()} or None,
+                                   int(loaded.extra.get("averaged_steps", 0)))
         return (scene, optimizers, strategy_state, loaded.step, loaded.extra.get("history", []),
-                float(loaded.extra.get("seconds", 0.0)))
+                float(loaded.extra.get("seconds", 0.0)), average)
 
     def _save_outputs(self, scene: RelightableScene, result: TrainResult) -> None:
         """``model.safetensors`` and ``train_summary.json`` of a finished run."""
@@ -516,6 +538,7 @@ class Trainer:
         atomic_write_json(self.run_dir / "train_summary.json", {
             "steps": result.steps, "seconds": round(result.seconds, 3), "num_gaussians": result.num_gaussians,
             "final_loss": result.final_loss, "init_source": self.init_source, "device": str(self.device),
+            "averaged_steps": result.averaged_steps,
             "images": {f"source_{i}": len(s.dataset) for i, s in enumerate(self.sources)},
             "history": result.history,
         })
