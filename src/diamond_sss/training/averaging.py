@@ -1,8 +1,8 @@
 """A uniform average of the scene's tensors over the last steps of a run (Polyak averaging).
 
 Adam's last iterates scatter around the minimum by the step size; their mean ``a_k = a_{k-1} + (p_k - a_{k-1}) / k``
-over the final steps removes that scatter (demo object, 10k steps, the last 10%: +0.13 dB test PSNR on two seeds,
-benchmarks/RESULTS.md, issue 17). The Gaussian set must keep its size over the window, so averaging starts
+over the final steps removes that scatter (demo object, 10k steps, the last 10%: +0.12 dB test PSNR on the mean of
+two seeds, measured twice; off by default, benchmarks/RESULTS.md, issue 17). The Gaussian set must keep its size over the window, so averaging starts
 after densification stops (:func:`averaging_start`).
 """
 
