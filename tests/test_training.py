@@ -222,6 +222,17 @@ def test_averaged_model_is_the_mean_of_the_last_steps_and_resumes_exactly(captur
     b = load_safetensors(tmp_path / "b" / "model.safetensors")
     for key in a:
         assert torch.equal(a[key], b[key]), key
+    # a step-4 checkpoint whose state lost the mean's step count is damaged: the resume falls back to step 2's
+    with pytest.raises(_Killed):
+        _KilledTrainer(cfg, [ImageSource(dataset)], tmp_path / "c", show_progress=False).run()
+    state = tmp_path / "c" / "checkpoints" / "step_00000004" / "state.json"
+    meta = json.loads(state.read_text())
+    del meta["extra"]["averaged_steps"]
+    state.write_text(json.dumps(meta))
+    Trainer(cfg, [ImageSource(dataset)], tmp_path / "c", show_progress=False).run(resume=True)
+    c = load_safetensors(tmp_path / "c" / "model.safetensors")
+    for key in a:
+        assert torch.equal(a[key], c[key]), key
     # a window that would begin while the Gaussians are densified begins when densification stops
     longer = make_config("diamond", overrides={**settings, "average_last": 0.9})
     assert Trainer(longer, [ImageSource(dataset)], None, show_progress=False).run().averaged_steps == 3
