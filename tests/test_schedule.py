@@ -8,6 +8,7 @@ import pytest
 
 from diamond_sss.cli.main import main
 from diamond_sss.data.analytic import make_capture
+from diamond_sss.training.averaging import averaging_start
 from diamond_sss.training.config import scale_schedule, schedule_for, short_schedule
 from diamond_sss.training.overrides import load_run_config, make_config, scaled_run_schedule
 
@@ -34,13 +35,14 @@ def test_demo_overrides_are_unchanged():
     assert short_schedule(1000, dense=True) == {**DEMO_OVERRIDES_1000, "batch_size": 2, "sss_angular_inputs": True}
 
 
-def test_only_a_long_dense_run_trains_the_sh_visibility_by_ray_tracing_alone():
-    assert "sss_visibility_gradient" not in short_schedule(9999, dense=True)
-    assert "sss_visibility_gradient" not in short_schedule(20000)  # sparse: not measured, the method's default
-    long_run = short_schedule(10000, dense=True)
-    assert long_run["sss_visibility_gradient"] is False
-    assert make_config("diamond", overrides=long_run).shading.sss_visibility_gradient is False
-    assert make_config("diamond").shading.sss_visibility_gradient is True  # the presets keep the method's
+def test_only_a_long_dense_run_trains_the_sh_visibility_by_ray_tracing_alone_and_averages_its_last_steps():
+    for shorter_or_sparse in (short_schedule(9999, dense=True), short_schedule(20000)):  # sparse: not measured
+        assert "sss_visibility_gradient" not in shorter_or_sparse and "average_last" not in shorter_or_sparse
+    long_run = make_config("diamond", overrides=short_schedule(10000, dense=True))
+    assert long_run.shading.sss_visibility_gradient is False and long_run.schedule.average_last == 0.1
+    assert averaging_start(10000, long_run.schedule.average_last, long_run.densify.refine_stop_iter) == 9000
+    preset = make_config("diamond")  # the presets keep the method's visibility and the last step's parameters
+    assert preset.shading.sss_visibility_gradient is True and preset.schedule.average_last == 0.0
 
 
 def test_scale_schedule_rounds_down_keeps_zero_and_other_keys():

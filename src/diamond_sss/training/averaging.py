@@ -1,9 +1,10 @@
 """A uniform average of the scene's tensors over the last steps of a run (Polyak averaging).
 
 Adam's last iterates scatter around the minimum by the step size; their mean ``a_k = a_{k-1} + (p_k - a_{k-1}) / k``
-over the final steps removes that scatter (demo object, 10k steps, the last 10%: +0.12 dB test PSNR on the mean of
-two seeds, measured twice; off by default, benchmarks/RESULTS.md, issue 17). The Gaussian set must keep its size over the window, so averaging starts
-after densification stops (:func:`averaging_start`).
+over the final steps removes that scatter (demo object, 10k steps, the last 10%: +0.20 / +0.06 / +0.17 dB test PSNR
+on three seeds, so dense short runs of 10k steps or more average, ``training.config.DENSE_LONG_RUN``; the presets
+keep the last step's parameters; benchmarks/RESULTS.md, issue 17). The Gaussian set must keep its size over the
+window, so averaging starts after densification stops (:func:`averaging_start`).
 """
 
 from __future__ import annotations
