@@ -324,8 +324,9 @@ training lights in long runs (demo object, 10k steps, three seeds: +0.29 dB mean
 most of it under the low novel lights; as much as freezing the visibility, which drops the method's learned
 visibility). At 1000 steps it costs 0.12 dB (three seeds), so shorter runs keep the photometric gradient. Its saved
 model is the mean of the last 10% of the steps' parameters (:mod:`diamond_sss.training.averaging`): +0.20 / +0.06 /
-+0.17 dB on three seeds at 10k, the training images and both kinds of novel images alike; not measured at 1000
-steps, where the window would be the 150 steps after densification (benchmarks/RESULTS.md, issue 17)."""
++0.17 dB on three seeds at 10k, the training images and both kinds of novel images alike; at 1000 steps (the last
+100, from 50 steps after densification's end, while the MLP still learns) -0.05 / -0.04 dB on two seeds, so shorter
+runs keep the last step's parameters (benchmarks/RESULTS.md, issue 17)."""
 
 
 SCHEDULE_FLOORS: dict[str, int] = {"densify.refine_every": 10, "densify.reset_every": 200}
