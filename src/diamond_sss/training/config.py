@@ -314,19 +314,20 @@ images are each drawn 100 times or more; batch 2 cost 0.4 and 1.2 dB in the demo
 inputs (with the cosines the 9-image SSS-3DGS rows gain 0.7-0.8 dB but the full pipeline loses 0.55-0.66 dB: bunny,
 torus) (benchmarks/RESULTS.md, issues 17 and 18)."""
 
-DENSE_LONG_RUN_STEPS = 10_000
+DENSE_LONG_RUN_STEPS = 3_000
 """From this many steps a short run over a dense capture also takes :data:`DENSE_LONG_RUN`."""
 
 DENSE_LONG_RUN: dict[str, Any] = {"sss_visibility_gradient": False, "average_last": 0.1}
-"""A dense short run of 10,000 steps or more trains the SH visibility with the ray-traced term alone: the
+"""A dense short run of 3,000 steps or more trains the SH visibility with the ray-traced term alone: the
 photometric loss no longer reaches it through the MLP's visibility input, through which it over-fits the 24
 training lights in long runs (demo object, 10k steps, three seeds: +0.29 dB mean test PSNR, every seed gaining,
 most of it under the low novel lights; as much as freezing the visibility, which drops the method's learned
-visibility). At 1000 steps it costs 0.12 dB (three seeds), so shorter runs keep the photometric gradient. Its saved
-model is the mean of the last 10% of the steps' parameters (:mod:`diamond_sss.training.averaging`): +0.20 / +0.06 /
-+0.17 dB on three seeds at 10k, the training images and both kinds of novel images alike; at 1000 steps (the last
-100, from 50 steps after densification's end, while the MLP still learns) -0.05 / -0.04 dB on two seeds, so shorter
-runs keep the last step's parameters (benchmarks/RESULTS.md, issue 17)."""
+visibility). Its saved model is the mean of the last 10% of the steps' parameters
+(:mod:`diamond_sss.training.averaging`): +0.20 / +0.06 / +0.17 dB on three seeds at 10k, the training images and
+both kinds of novel images alike. Both together at 3,000 steps: +0.17 / +0.09 dB on two seeds. At 1000 steps each
+costs (the visibility -0.12 dB on three seeds; averaging the last 100 steps, from 50 steps after densification's
+end while the MLP still learns, -0.05 / -0.04 dB on two), so shorter runs keep the photometric gradient and the
+last step's parameters (benchmarks/RESULTS.md, issue 17)."""
 
 
 SCHEDULE_FLOORS: dict[str, int] = {"densify.refine_every": 10, "densify.reset_every": 200}
