@@ -33,6 +33,7 @@ from diamond_sss.losses import (
     normals_from_depth,
     photometric_loss,
     raytrace_visibility_loss,
+    rmse_per_image,
     ssim_per_image,
 )
 from diamond_sss.losses import lpips as lpips_module
@@ -111,6 +112,26 @@ def test_photometric_loss_mixes_and_weights_per_image():
     expected = (per_image[0] + 0.5 * per_image[1]) / 2
     assert photometric_loss(a, b, lam, weights).item() == pytest.approx(float(expected), rel=1e-5)
     assert photometric_loss(a, b, lam, 2 * weights).item() == pytest.approx(float(2 * expected), rel=1e-5)
+
+
+def test_rmse_photometric_error_is_what_psnr_measures_with_its_gradient():
+    pred = torch.zeros(2, 12, 12, 3)
+    target = torch.stack([torch.full((12, 12, 3), 0.1), torch.full((12, 12, 3), 0.01)])
+    target[1, :6] = 0.03  # half the pixels off by 0.03, half by 0.01: RMSE sqrt((0.03^2 + 0.01^2) / 2)
+    rmse = rmse_per_image(pred, target)
+    assert rmse.tolist() == pytest.approx([math.sqrt(0.01 + 1e-8), math.sqrt(5e-4 + 1e-8)], rel=1e-6)  # + eps
+    assert (-20 * torch.log10(rmse)).tolist() == pytest.approx([20.0, 33.0103], abs=1e-3)  # the images' PSNR
+    a, b = _images(seed=3)
+    lam, weights = 0.3, torch.tensor([1.0, 0.5])
+    expected = sum(w * ((1 - lam) * ((a[i] - b[i]).square().mean() + 1e-8).sqrt()
+                        + lam * (1 - ssim_per_image(a[i : i + 1], b[i : i + 1])[0]))
+                   for i, w in enumerate(weights)) / 2
+    assert photometric_loss(a, b, lam, weights, "rmse").item() == pytest.approx(float(expected), rel=1e-5)
+    with pytest.raises(ValueError, match=r"photometric error must be one of \['l1', 'rmse'\], got 'l2'"):
+        photometric_loss(a, b, lam, error="l2")
+    small_a, small_b = (x[:, :11, :11].double() for x in _images(seed=4))
+    small_a.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: photometric_loss(x, small_b, 0.0, error="rmse"), (small_a,))
 
 
 def test_photometric_loss_gradient_and_errors():

@@ -108,6 +108,9 @@ def test_srgb_photometric_space_weighs_dark_errors_more():
     assert make_config("diamond").losses.photometric_space == "srgb"  # as the SSS-3DGS release
     with pytest.raises(ValueError, match="photometric_space"):
         make_config("diamond", overrides={"photometric_space": "log"})
+    assert make_config("diamond").losses.photometric_error == "l1"  # Eq. A.1
+    with pytest.raises(ValueError, match="photometric_error"):
+        make_config("diamond", overrides={"photometric_error": "mse"})
     target = torch.full((1, 16, 16, 3), 0.01)
     pred = target + 0.01
     linear = photometric_loss(pred, target, 0.0)

@@ -20,6 +20,7 @@ from diamond_sss.losses.photometric import (
     l1_loss,
     l1_per_image,
     photometric_loss,
+    rmse_per_image,
     ssim_per_image,
 )
 from diamond_sss.losses.regularizers import (
@@ -62,6 +63,7 @@ __all__ = [
     "normals_from_depth",
     "photometric_loss",
     "raytrace_visibility_loss",
+    "rmse_per_image",
     "sample_foreground_pixels",
     "sample_view_pairs",
     "ssim_per_image",

@@ -35,6 +35,21 @@ def l1_per_image(pred: Tensor, target: Tensor) -> Tensor:
     return (pred - target).abs().mean(dim=(1, 2, 3))
 
 
+RMSE_EPS = 1e-8
+"""Added under the root of :func:`rmse_per_image` so that its gradient stays finite where an image matches exactly."""
+
+
+def rmse_per_image(pred: Tensor, target: Tensor) -> Tensor:
+    """Root mean squared error of each image, ``RMSE_b = sqrt(mean_{x,c} (pred - target)^2 + eps)``, the quantity
+    that PSNR measures (``PSNR_b = -20 log10 RMSE_b`` for a data range of 1). ``[B,H,W,C] -> [B]``."""
+    _check_pair(pred, target)
+    return ((pred - target).square().mean(dim=(1, 2, 3)) + RMSE_EPS).sqrt()
+
+
+PIXEL_ERRORS = {"l1": l1_per_image, "rmse": rmse_per_image}
+"""The per-image error beside D-SSIM in :func:`photometric_loss`, by the name ``losses.photometric_error`` gives."""
+
+
 @functools.lru_cache(maxsize=16)
 def ssim_window(channels: int, device: torch.device, dtype: torch.dtype) -> Tensor:
     """pytorch_msssim's separable Gaussian window ``g_i = exp(-(i - 5)^2 / (2 sigma^2)) / sum``, ``[C,1,1,11]``, made
@@ -98,17 +113,20 @@ def dssim_loss(pred: Tensor, target: Tensor, weights: Tensor | None = None) -> T
 
 
 def photometric_loss(
-    pred: Tensor, target: Tensor, lambda_dssim: float, weights: Tensor | None = None
+    pred: Tensor, target: Tensor, lambda_dssim: float, weights: Tensor | None = None, error: str = "l1"
 ) -> Tensor:
     """Mixed photometric objective of Eq. A.1.
 
-    ``L = (1/B) sum_b w_b [(1 - l) L1_b + l (1 - SSIM_b)]`` with ``l = lambda_dssim`` in ``[0, 1]``.
+    ``L = (1/B) sum_b w_b [(1 - l) E_b + l (1 - SSIM_b)]`` with ``l = lambda_dssim`` in ``[0, 1]`` and ``E_b`` the
+    image's ``error`` (:data:`PIXEL_ERRORS`): ``L1_b`` (Eq. A.1) or ``RMSE_b``.
     ``weights [B]`` are per-image weights (e.g. ``alpha = 0.5`` for diffusion-generated images, 1 for
     real ones); ``None`` weighs every image 1. ``[B,H,W,C] -> []``.
     """
     if not 0.0 <= lambda_dssim <= 1.0:
         raise ValueError(f"lambda_dssim must lie in [0, 1], got {lambda_dssim}")
-    per_image = (1.0 - lambda_dssim) * l1_per_image(pred, target)
+    if error not in PIXEL_ERRORS:
+        raise ValueError(f"photometric error must be one of {sorted(PIXEL_ERRORS)}, got {error!r}")
+    per_image = (1.0 - lambda_dssim) * PIXEL_ERRORS[error](pred, target)
     if lambda_dssim > 0.0:
         per_image = per_image + lambda_dssim * dssim_per_image(pred, target)
     return weighted_mean(per_image, weights)

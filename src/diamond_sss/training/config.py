@@ -136,6 +136,8 @@ class Losses:
 
     photometric_space: str = _key("srgb", "where L1 / D-SSIM compare images: srgb (as the SSS-3DGS release, "
                                   "which compares 8-bit sRGB values, and as the metrics) | linear radiance")
+    photometric_error: str = _key("l1", "per-image error beside D-SSIM: l1 (Eq. A.1) | rmse (root mean squared "
+                                  "error, what PSNR measures)")
     lambda_dssim: float = _key(0.492, "weight of the D-SSIM term of the photometric loss")
     lambda_lpips: float = _key(0.171, "weight of the LPIPS loss")
     lambda_mask: float = _key(0.1, "weight of the mask (alpha vs object mask) loss")

@@ -1,13 +1,13 @@
 """The training objective L_total (supplement Eq. A.1-A.7, method.md §4-§5), assembled from the pure terms.
 
-    L_total = [(1 - l_dssim) L1 + l_dssim (1 - SSIM)]_w + l_lpips LPIPS_w + l_mask L_mask
+    L_total = [(1 - l_dssim) E + l_dssim (1 - SSIM)]_w + l_lpips LPIPS_w + l_mask L_mask
               + l_mask_entropy H(alpha) + sum_q l_smooth^q L_smooth^q + l_enh L_enh + l_base_color L_bc
               + l_normal L_normals + l_incident L_incident + l_visibility L_raytrace
               + l_sil L_sil^MV + l_depth L_depth^MV
 
-``[.]_w``: per-image weighted (1 for real images, ``synthetic_weight`` = alpha for generated ones). L1 and
-D-SSIM compare sRGB values (``losses.photometric_space``, or linear radiance), LPIPS sRGB, the regularisers
-linear radiance. Geometric terms (mask, normals, multi-view) use every image at full weight.
+``[.]_w``: per-image weighted (1 for real images, ``synthetic_weight`` = alpha for generated ones). ``E`` is each
+image's L1 (Eq. A.1) or RMSE (``losses.photometric_error``). ``E`` and D-SSIM compare sRGB values
+(``losses.photometric_space``, or linear radiance), LPIPS sRGB, the regularisers linear radiance. Geometric terms (mask, normals, multi-view) use every image at full weight.
 """
 
 from __future__ import annotations
@@ -52,7 +52,8 @@ def image_objective(render: SceneRender, target: TargetBatch, cfg: TrainConfig,
         compared, reference = linear_to_srgb(pred), linear_to_srgb(target.rgb)
     else:
         compared, reference = pred, target.rgb
-    terms["photometric"] = photometric.photometric_loss(compared, reference, cfg.losses.lambda_dssim, target.weights)
+    terms["photometric"] = photometric.photometric_loss(compared, reference, cfg.losses.lambda_dssim, target.weights,
+                                                        cfg.losses.photometric_error)
     if lpips_model is not None and cfg.losses.lambda_lpips > 0:
         distance = lpips_model(linear_to_srgb(pred), linear_to_srgb(target.rgb))
         terms["lpips"] = cfg.losses.lambda_lpips * weighted_mean(distance, target.weights)

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from diamond_sss.errors import DataError
+from diamond_sss.losses.photometric import PIXEL_ERRORS
 from diamond_sss.training.config import (
     FIELDS,
     GROUPS,
@@ -138,7 +139,8 @@ NON_NEGATIVE_INT_KEYS = ("shading.sss_light_depth", "shading.sss_position_freqs"
 """Sizes and step counts where 0 means off."""
 
 CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"), "gaussians.hull_masks": ("real", "all"),
-           "losses.photometric_space": ("linear", "srgb"), "multiview.target_mode": ("nearest-k", "random"),
+           "losses.photometric_space": ("linear", "srgb"),
+           "losses.photometric_error": tuple(PIXEL_ERRORS), "multiview.target_mode": ("nearest-k", "random"),
            "shading.light_falloff": ("none", "inverse_square")}
 
 
