@@ -32,7 +32,8 @@ def test_demo_overrides_are_unchanged():
         assert scaled["opacity_reset_interval"] > n  # never reset in a short run
         assert scaled["lr_decay_step"] == 7 * n // 10  # the step decay at 70% of the run
         assert scaled["sss_lr_warmup_steps"] == n // 10  # the MLP's warm-up over the first 10%
-    assert short_schedule(1000, dense=True) == {**DEMO_OVERRIDES_1000, "batch_size": 2, "sss_angular_inputs": True}
+    assert short_schedule(1000, dense=True) == {**DEMO_OVERRIDES_1000, "batch_size": 2, "sss_angular_inputs": True,
+                                                "photometric_error": "rmse"}
 
 
 def test_only_a_long_dense_run_trains_the_sh_visibility_by_ray_tracing_alone_and_averages_its_last_steps():

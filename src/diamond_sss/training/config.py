@@ -308,13 +308,15 @@ Gaussians, not its pixels). A light's map is rendered once in each window of 10 
 (``sss_light_depth_every``): the demo's 9-image ``sss3dgs`` run takes 15% less time (216 -> 185 s) for 19.19 -> 19.17
 dB, and the demo's rows move within their seed spread (19.19 | 21.47 | 30.33 -> 19.17 | 21.69 | 30.28 dB)."""
 
-DENSE_SHORT_RUN: dict[str, Any] = {"batch_size": 2, "sss_angular_inputs": True}
+DENSE_SHORT_RUN: dict[str, Any] = {"batch_size": 2, "sss_angular_inputs": True, "photometric_error": "rmse"}
 """A short run over a dense capture (the demo object's 960 images: at batch 1, 1000 steps draw each image about
-once) draws 2 images per step: +0.7 / +1.2 dB on two seeds for 1.3x the time; and its MLP sees the cosines n.l, n.v,
-v.l: +0.84 / +0.26 / +0.23 dB on three seeds, all of it under novel lights. Sparse runs keep batch 1 (their few
-images are each drawn 100 times or more; batch 2 cost 0.4 and 1.2 dB in the demo's 9-image rows) and the plain MLP
-inputs (with the cosines the 9-image SSS-3DGS rows gain 0.7-0.8 dB but the full pipeline loses 0.55-0.66 dB: bunny,
-torus) (benchmarks/RESULTS.md, issues 17 and 18)."""
+once) draws 2 images per step: +0.7 / +1.2 dB on two seeds for 1.3x the time; its MLP sees the cosines n.l, n.v,
+v.l: +0.84 / +0.26 / +0.23 dB on three seeds, all of it under novel lights; and its photometric loss takes each
+image's RMSE, what PSNR measures, in place of Eq. A.1's L1: +0.21 / +0.20 dB on two seeds at 1000 steps, +0.29 /
++0.26 / +0.23 on three at 10,000. Sparse runs keep batch 1 (their few images are each drawn 100 times or more; batch
+2 cost 0.4 and 1.2 dB in the demo's 9-image rows), the plain MLP inputs (with the cosines the 9-image SSS-3DGS rows
+gain 0.7-0.8 dB but the full pipeline loses 0.55-0.66 dB: bunny, torus) and L1 (with the RMSE the demo's 9-image
+SSS-3DGS row gains 0.34 dB and the full pipeline loses 0.41) (benchmarks/RESULTS.md, issues 17 and 18)."""
 
 DENSE_LONG_RUN_STEPS = 3_000
 """From this many steps a short run over a dense capture also takes :data:`DENSE_LONG_RUN`."""
