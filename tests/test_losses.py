@@ -475,10 +475,12 @@ def test_cuda_matches_cpu(tmp_path, fresh_lpips_warning):
     model = load_lpips(str(path))
     a, b = _images(batch=2, size=32, seed=7)
     mask = (a[..., :1] > 0.3).float()
-    cpu = [photometric_loss(a, b, 0.3), bilateral_smoothness_loss(a, b, mask), model(a, b)]
+    cpu = [photometric_loss(a, b, 0.3), photometric_loss(a, b, 0.3, error="rmse"),
+           bilateral_smoothness_loss(a, b, mask), model(a, b)]
     a, b, mask = a.cuda(), b.cuda(), mask.cuda()
     model = model.cuda()
-    cuda = [photometric_loss(a, b, 0.3), bilateral_smoothness_loss(a, b, mask), model(a, b)]
+    cuda = [photometric_loss(a, b, 0.3), photometric_loss(a, b, 0.3, error="rmse"),
+            bilateral_smoothness_loss(a, b, mask), model(a, b)]
     for expected, value in zip(cpu, cuda):
         assert value.device.type == "cuda"
         assert torch.allclose(value.cpu(), expected, rtol=1e-4, atol=1e-5)
