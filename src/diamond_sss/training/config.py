@@ -134,8 +134,9 @@ class Shading:
 class Losses:
     """Loss weights (Eq. A.1-A.7, Tab. 3) and where the photometric loss compares images."""
 
-    photometric_space: str = _key("srgb", "where L1 / D-SSIM compare images: srgb (as the SSS-3DGS release, "
-                                  "which compares 8-bit sRGB values, and as the metrics) | linear radiance")
+    photometric_space: str = _key("srgb", "where the photometric error and D-SSIM compare images: srgb (as the "
+                                  "SSS-3DGS release, which compares 8-bit sRGB values, and as the metrics) | "
+                                  "linear radiance")
     photometric_error: str = _key("l1", "per-image error beside D-SSIM: l1 (Eq. A.1) | rmse (root mean squared "
                                   "error, what PSNR measures)")
     lambda_dssim: float = _key(0.492, "weight of the D-SSIM term of the photometric loss")
