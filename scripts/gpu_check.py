@@ -14,7 +14,8 @@ Steps, each timed and recorded even when an earlier one failed:
      machine; it also packs them into ``outputs/priors.tgz``, 10 MB, the form to carry to a lent GPU machine and
      unpack there: ``scripts/gpu_lease.sh`` does it); the run stops checkpointed at its time limit
      and its EMA weights are written in fp16 to ``<out>/nvs_prior_model`` (12 MiB), for the CPU rows of
-     ``benchmarks/regimes.py --pipeline-set nvs_model=...``; bf16 autocast by default (``--prior-precision``),
+     ``benchmarks/regimes.py --pipeline-set nvs_model=...``; float32 by default (``--prior-precision``: bf16
+     autocast took 1.5x as long per step under the deterministic kernels, H200, 2026-11-27),
      and ``--prior-init`` goes on from an earlier lease's prior (fresh optimiser and warm-up), so that 15-minute
      leases add up.
 Writes ``report.json`` and ``report.md`` (plus each step's log) under ``--out``.
@@ -77,7 +78,7 @@ def run_step(name: str, command: list[str], out: Path, timeout: int, env: dict[s
 
 
 def run_nvs_prior(cli: list[str], data: list[Path], minutes: float, out: Path, env: dict[str, str],
-                  precision: str = "bf16", init: Path | None = None) -> dict:
+                  precision: str = "no", init: Path | None = None) -> dict:
     """Train the GPU prior for ``minutes`` of wall time (``finetune-nvs --time-limit-s``: it stops checkpointed at
     the first step past it) in ``precision`` (autocast), from ``init``'s weights when given (an earlier lease's
     prior, carried back), and export its EMA weights in fp16 to ``out/nvs_prior_model``."""
@@ -165,7 +166,7 @@ def main() -> None:
     parser.add_argument("--prior-data", type=Path, nargs="*", default=[],
                         help="captures the novel-view prior trains on (scripts/make_prior_data.sh); none: no prior")
     parser.add_argument("--prior-minutes", type=float, default=7.0, help="training time of the novel-view prior")
-    parser.add_argument("--prior-precision", default="bf16", choices=("no", "bf16", "fp16"),
+    parser.add_argument("--prior-precision", default="no", choices=("no", "bf16", "fp16"),
                         help="autocast of the prior's training (finetune-nvs --mixed-precision)")
     parser.add_argument("--prior-init", type=Path, default=None,
                         help="model folder the prior starts from (an earlier run's nvs_prior_model): its training "
