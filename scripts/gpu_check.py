@@ -89,7 +89,8 @@ def run_nvs_prior(cli: list[str], data: list[Path], minutes: float, out: Path, e
     result = run_step("nvs-prior", command, out, int(minutes * 60) + PRIOR_GRACE_S, env)
     if (last := last_log_record(run / "train_log.jsonl")) is not None:
         result["summary"] = (f"{last['step']} steps, loss {last['loss']:.4f}, {last['seconds']:.3f} s at the last "
-                             f"logged step ({precision}{', from ' + str(init) if init else ''})")
+                             f"logged step ({'float32' if precision == 'no' else precision}"
+                             f"{', from ' + str(init) if init else ''})")
     if result["exit_code"] == 0:
         from diamond_sss.diffusion.nvs.model import NVSModel
 
