@@ -7,6 +7,9 @@
 # (nvs_prior_model/, when trained) and everything else packed into gpu_check.tgz (logs, report.json, speed tables,
 # the prior's train_log.jsonl).
 # Carry ["outputs/wheels", "outputs/priors.tgz"] (with the checkout ~53 MiB). Examples:
+#   scripts/gpu_lease.sh --skip build cuda-tests suite speed speed-raster nvs-speed train eval --prior-minutes 8
+#                                                    # the prior alone (no gsplat needed): ~2,100 steps of 32 images
+#   scripts/gpu_lease.sh --skip speed speed-raster nvs-speed train eval nvs-prior   # the whole suite (~7 min there)
 #   scripts/gpu_lease.sh --skip suite speed speed-raster train eval --prior-minutes 6   # CUDA tests + the prior
 #   scripts/gpu_lease.sh --skip cuda-tests suite --iterations 10000                      # speed + a 10k demo run
 #   scripts/gpu_lease.sh --skip cuda-tests suite speed-raster train eval nvs-prior       # speed.py --profile alone
