@@ -309,11 +309,11 @@ def test_a_training_step_on_cuda_never_waits_for_the_gpu(precision):
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs a CUDA GPU")])])
-def test_splat_sums_match_index_add_and_repeat_to_the_bit(device):
-    """The warp's per-pixel sums: ``index_add``'s to float64 round-off on rows of very different scales, empty bins
-    exactly 0, and the same bits again under deterministic algorithms (fixed point, no atomics)."""
+def test_sorted_splat_sums_match_index_add_and_repeat_to_the_bit(device):
+    """The sorted per-pixel sums (the warp's on CUDA; here on each device): ``index_add``'s to float64 round-off on
+    rows of very different scales, empty bins exactly 0, the same bits again under deterministic algorithms."""
     from diamond_sss.diffusion.common.runtime import kernel_settings
-    from diamond_sss.diffusion.nvs.warp import _bin_sums
+    from diamond_sss.diffusion.nvs.warp import _bin_sums, _sorted_bin_sums
 
     generator = torch.Generator().manual_seed(0)
     index = torch.randint(0, 5000, (200_000,), generator=generator)
@@ -323,7 +323,8 @@ def test_splat_sums_match_index_add_and_repeat_to_the_bit(device):
     expected = torch.zeros(3, 5000, dtype=torch.float64).index_add(1, index, values)
     index, values = index.to(device), values.to(device)
     with kernel_settings(deterministic=True):
-        sums = _bin_sums(index, values, 5000)
-        again = _bin_sums(index, values, 5000)
+        sums = _sorted_bin_sums(index, values, 5000)
+        again = _sorted_bin_sums(index, values, 5000)
     torch.testing.assert_close(sums.cpu(), expected, rtol=1e-12, atol=0)
     assert (sums[:, 7] == 0).all() and torch.equal(sums, again)
+    torch.testing.assert_close(_bin_sums(index, values, 5000).cpu(), expected, rtol=1e-12, atol=0)

@@ -46,13 +46,20 @@ def _footprint(uv: Tensor, mode: str) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _bin_sums(index: Tensor, values: Tensor, bins: int) -> Tensor:
-    """``out[r, p] = sum_{j : index[j] = p} values[r, j]`` for finite float64 ``values [R,M]``, ``index [M]`` in ``[0, bins)``.
+    """``out[r, p] = sum_{j : index[j] = p} values[r, j]`` (finite float64 ``values [R,M]``, ``index [M]`` in
+    ``[0, bins)``), the same bits on every run: :func:`_sorted_bin_sums` on CUDA, where ``index_add`` adds
+    with atomics or, under deterministic algorithms, in a serial per-bin loop (~13 ms per call on an H200);
+    ``index_add`` elsewhere, deterministic on a CPU and ~10x faster there than the sort."""
+    if index.device.type != "cuda":
+        sums = torch.zeros(values.shape[0], bins, dtype=values.dtype, device=values.device)
+        return sums.index_add(1, index, values)
+    return _sorted_bin_sums(index, values, bins)
 
-    Summed exactly in 64-bit fixed point of ``2^-s`` units (``s`` per row, the largest that keeps the row's sum of
-    magnitudes under ``2^61``; rounding ``<= 2^-(s+1)`` per value) as differences of prefix sums over a stable sort
-    of ``index``: the same bits on every run and device, with no atomics and no serial per-bin loop (what
-    ``index_add`` falls back to on CUDA under deterministic algorithms: ~13 ms per call on an H200).
-    """
+
+def _sorted_bin_sums(index: Tensor, values: Tensor, bins: int) -> Tensor:
+    """:func:`_bin_sums` in 64-bit fixed point of ``2^-s`` units (``s`` per row, the largest that keeps the
+    row's sum of magnitudes under ``2^61``; rounding ``<= 2^-(s+1)`` per value), as differences of prefix sums
+    over a stable sort of ``index``: exact integer sums, the same bits on every run and device, no atomics."""
     sorted_index, order = torch.sort(index, stable=True)
     magnitude = values.abs().sum(-1, keepdim=True).clamp_min(torch.finfo(values.dtype).tiny)
     shift = (61 - torch.log2(magnitude).ceil()).clamp(-900, 900)
