@@ -328,3 +328,7 @@ def test_sorted_splat_sums_match_index_add_and_repeat_to_the_bit(device):
     torch.testing.assert_close(sums.cpu(), expected, rtol=1e-12, atol=0)
     assert (sums[:, 7] == 0).all() and torch.equal(sums, again)
     torch.testing.assert_close(_bin_sums(index, values, 5000).cpu(), expected, rtol=1e-12, atol=0)
+    values[1, index == 9] = torch.nan  # a non-finite value spoils its bin alone, as with index_add
+    spoiled = _sorted_bin_sums(index, values, 5000).cpu()
+    assert spoiled[1, 9].isnan() and not spoiled[1, :9].isnan().any() and not spoiled[1, 10:].isnan().any()
+    torch.testing.assert_close(spoiled[[0, 2]], expected[[0, 2]], rtol=1e-12, atol=0)

@@ -59,14 +59,19 @@ def _bin_sums(index: Tensor, values: Tensor, bins: int) -> Tensor:
 def _sorted_bin_sums(index: Tensor, values: Tensor, bins: int) -> Tensor:
     """:func:`_bin_sums` in 64-bit fixed point of ``2^-s`` units (``s`` per row, the largest that keeps the
     row's sum of magnitudes under ``2^61``; rounding ``<= 2^-(s+1)`` per value), as differences of prefix sums
-    over a stable sort of ``index``: exact integer sums, the same bits on every run and device, no atomics."""
+    over a stable sort of ``index``: exact integer sums, the same bits on every run and device, no atomics. A bin
+    that receives a non-finite value is NaN, as with ``index_add``; the other bins keep their sums."""
     sorted_index, order = torch.sort(index, stable=True)
+    values = values[:, order]
+    finite = values.isfinite()
+    values = torch.where(finite, values, 0.0)
     magnitude = values.abs().sum(-1, keepdim=True).clamp_min(torch.finfo(values.dtype).tiny)
     shift = (61 - torch.log2(magnitude).ceil()).clamp(-900, 900)
-    fixed = torch.round(values[:, order] * torch.exp2(shift)).to(torch.int64)
+    fixed = torch.stack([torch.round(values * torch.exp2(shift)).to(torch.int64), (~finite).to(torch.int64)])
     prefix = F.pad(fixed.cumsum(-1), (1, 0))
     edges = torch.searchsorted(sorted_index, torch.arange(bins + 1, device=index.device, dtype=index.dtype))
-    return (prefix[:, edges[1:]] - prefix[:, edges[:-1]]).to(values.dtype) * torch.exp2(-shift)
+    sums, non_finite = prefix[..., edges[1:]] - prefix[..., edges[:-1]]
+    return torch.where(non_finite > 0, torch.nan, sums.to(values.dtype) * torch.exp2(-shift))
 
 
 def forward_warp(
