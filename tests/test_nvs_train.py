@@ -9,6 +9,7 @@ import torch
 from tiny_models import TINY_NVS
 
 from diamond_sss.data.analytic import make_capture
+from diamond_sss.data.embedded import embedded_dataset
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch
 from diamond_sss.diffusion.nvs.model import NVSBatch, NVSConfig, NVSModel
 from diamond_sss.diffusion.nvs.train import FinetuneConfig, finetune
@@ -131,6 +132,24 @@ def test_a_time_limited_run_stops_checkpointed_and_resumes_to_the_uninterrupted_
     a, b = load_safetensors(straight / "model.safetensors"), load_safetensors(resumed / "model.safetensors")
     for key in a:
         torch.testing.assert_close(a[key], b[key], atol=1e-6, rtol=0, msg=key)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_a_seeded_finetune_on_cuda_repeats_to_the_bit(tmp_path):
+    """The GPU prior's kind of run (warp hint with its residual, attention over 32 x 32 = 1,024 pixels, where fused
+    attention kernels may split their backward pass across thread blocks) trained twice from one seed on CUDA
+    ends in the same weights, bit for bit: the fine-tune's deterministic kernels cover every operator it runs."""
+    objects = [embedded_dataset(f"finetune/{name}") for name in ("torus_jade", "blob_soap")]
+    config = FinetuneConfig(objects_per_batch=2, views_per_object=2, steps=3, warmup_steps=1, checkpoint_every=100,
+                            log_every=100, model=NVSConfig(**{**TINY_NVS, "image_size": 64, "hint_residual": True}))
+    first, second = (load_safetensors(finetune(objects, tmp_path / name, config, log=lambda _: None)
+                                      / "model.safetensors") for name in ("first", "second"))
+    torch.manual_seed(config.seed)  # the fine-tune's initial weights
+    initial = NVSModel(config.model).state_dict()
+    assert any(not torch.equal(first[key].cpu(), initial[key]) for key in first), "the run changed no weight"
+    different = [key for key in first if not torch.equal(first[key], second[key])]
+    assert not different, f"{len(different)} of {len(first)} tensors differ between two seeded runs: {different[:5]}"
 
 
 def test_a_run_starts_from_a_saved_models_weights_and_refuses_another_architecture(objects, tmp_path):
