@@ -8,7 +8,7 @@ reference image itself, copied to every target, is reported as the trivial floor
 the geometric warp hint alone ("warp-hint": the reference forward-warped with its depth, exactly as a
 warp-hint model sees it, upsampled to the image size). The model and the hint take the reference's metric
 depth from ``--geometry`` (default: the depth maps stored with the data, so render them).
-Writes benchmarks/results/nvs_quality/{nvs_quality.json, nvs_quality.md}.
+Writes benchmarks/results/nvs_quality/{nvs_quality.json, nvs_quality.md} (scratch runs: outputs/benchmarks/nvs_quality/).
 
     python -m diamond_sss.cli.main synth --shape torus --material marble --seed 21 --out /tmp/nvs/torus \\
         --views 12 --lights 1 --size 64 --spp 32 --test-views 0 --test-lights 0
@@ -43,6 +43,8 @@ from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
 
 RESULTS = Path(__file__).resolve().parent / "results" / "nvs_quality"
+WORK = Path(__file__).resolve().parents[1] / "outputs" / "benchmarks" / "nvs_quality"
+"""Scratch folder of the baseline runs and generated images (outside the committed results)."""
 ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 181))
 
 
@@ -208,7 +210,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--geometry", default="maps", help="reference depth for the warp hint: 'maps' or a run folder"
     )
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--out", type=Path, default=RESULTS, help="folder of nvs_quality.{json,md}")
+    parser.add_argument("--work", type=Path, default=WORK,
+                        help="folder of the baseline runs and generated images, one subfolder per capture")
     return parser.parse_args(argv)
 
 
@@ -239,7 +243,7 @@ def main() -> None:
         rows += evaluate_object(
             data,
             model,
-            args.out / "work" / data.name,
+            args.work / data.name,
             args.view,
             args.light,
             args.steps,

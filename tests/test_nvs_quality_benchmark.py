@@ -49,6 +49,7 @@ def test_the_recorded_settings_are_the_parsed_command_line_as_json_naming_the_sh
     assert json.loads(json.dumps(record)) == record
     assert record["data"] == ["heldout/torus", "heldout/bunny"] and record["model"] == "m"
     assert record["steps"] == [50, 10] and record["out"] == str(nvs.RESULTS)
+    assert record["work"] == str(nvs.WORK) and not nvs.WORK.is_relative_to(nvs.RESULTS)  # scratch stays uncommitted
     defaults = nvs.settings_record(nvs.parse_args(["--data", "torus"]))
     assert (defaults["model"], defaults["steps"], defaults["geometry"]) == ("shipped", [25, 1], "maps")
 
