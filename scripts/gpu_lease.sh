@@ -6,19 +6,21 @@
 # those captures, runs gpu_check.py with the arguments given, and leaves in $OUT: report.md, the fp16 prior
 # (nvs_prior_model/, when trained) and everything else packed into gpu_check.tgz (logs, report.json, speed tables,
 # the prior's train_log.jsonl).
-# Carry ["outputs/wheels", "outputs/priors.tgz"] (with the checkout ~53 MiB). Examples:
-#   scripts/gpu_lease.sh --skip build cuda-tests suite speed speed-raster nvs-speed train eval --prior-minutes 8
-#                                                    # the prior alone (no gsplat needed): ~2,100 steps of 32 images
-#   scripts/gpu_lease.sh --skip speed speed-raster nvs-speed train eval nvs-prior   # the whole suite (~7 min there)
-#   scripts/gpu_lease.sh --skip suite speed speed-raster train eval --prior-minutes 6   # CUDA tests + the prior
-#   scripts/gpu_lease.sh --skip cuda-tests suite --iterations 10000                      # speed + a 10k demo run
-#   scripts/gpu_lease.sh --skip cuda-tests suite speed-raster train eval nvs-prior       # speed.py --profile alone
-# Going on with an earlier lease's prior (its nvs_prior_model/, 13 MiB, copied to outputs/nvs_prior_init): the
-# checkout, all wheels, the captures and it exceed 64 MiB, so carry the wheels without optuna and the database
-# packages (~13 MiB; only the suite and the tuning need them): `LEAN=1 scripts/fetch_gpu_wheels.sh .venv/bin/python
-# outputs/wheels_lean`, and carry ["outputs/wheels_lean", "outputs/priors.tgz", "outputs/nvs_prior_init"] (~63 MiB):
+# The checkout is ~40 MiB since it holds the shipped novel-view model (12 MiB), so all wheels (~18 MiB) and the
+# captures (~10 MiB) beside it exceed the 64 MiB that travel: a call that trains the prior carries the wheels without
+# optuna and its database packages (~13 MiB; only the suite and the tuning need them), made here by
+# `LEAN=1 scripts/fetch_gpu_wheels.sh .venv/bin/python outputs/wheels_lean`, and names them in WHEELS.
+# Carry ["outputs/wheels_lean", "outputs/priors.tgz"] (~62 MiB with the checkout):
+#   WHEELS=outputs/wheels_lean OUT=$OUT scripts/gpu_lease.sh --skip build cuda-tests suite speed speed-raster \
+#       nvs-speed train eval --prior-minutes 8 --prior-init src/diamond_sss/assets/models/nvs
+#                       # the shipped prior trained on (no gsplat needed): ~2,300 steps of 32 images; then copy the
+#                       # returned nvs_prior_model/ over it once scripts/judge_prior.sh has judged it
 #   WHEELS=outputs/wheels_lean OUT=$OUT scripts/gpu_lease.sh --skip suite speed speed-raster train eval \
-#       --prior-minutes 6 --prior-init outputs/nvs_prior_init   # CUDA tests, the prior's step profiled, the prior
+#       --prior-minutes 6 --prior-init src/diamond_sss/assets/models/nvs   # CUDA tests, the step profiled, the prior
+# Carry ["outputs/wheels"] (~58 MiB; no captures, so no prior):
+#   scripts/gpu_lease.sh --skip speed speed-raster nvs-speed train eval   # the whole suite (~7 min there)
+#   scripts/gpu_lease.sh --skip cuda-tests suite --iterations 10000        # speed + a 10k demo run
+#   scripts/gpu_lease.sh --skip cuda-tests suite speed-raster train eval   # speed.py --profile alone
 set -uo pipefail
 cd "$(dirname "$0")/.."
 : "${OUT:?OUT must name the folder whose files come back}"

@@ -4,7 +4,7 @@
 # out by benchmarks/nvs_quality.py (torus/marble, bunny/soap, blob/jade): 23 pairs, each VIEWS views x 3 lights
 # (the novel-view subset of a 40 x 24 lattice) at 64 px, 128 spp, with depth maps. Not committed: written to
 # outputs/priors/ (about 1 MB per pair at 10 views) and packed into outputs/priors.tgz (10 MB), the form that
-# travels to a lent GPU machine beside the wheels (its 64 MiB limit counts the checkout, ~25 MiB, too).
+# travels to a lent GPU machine beside the wheels (its 64 MiB limit counts the checkout, ~40 MiB, too).
 # Usage: scripts/make_prior_data.sh [PYTHON] [VIEWS]   (VIEWS default 10; Mitsuba, CPU)
 set -euo pipefail
 cd "$(dirname "$0")/.."
