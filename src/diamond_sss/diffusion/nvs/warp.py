@@ -46,7 +46,7 @@ def _footprint(uv: Tensor, mode: str) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _bin_sums(index: Tensor, values: Tensor, bins: int) -> Tensor:
-    """``out[r, p] = sum_{j : index[j] = p} values[r, j]`` (finite float64 ``values [R,M]``, ``index [M]`` in
+    """``out[r, p] = sum_{j : index[j] = p} values[r, j]`` (float64 ``values [R,M]``, ``index [M]`` in
     ``[0, bins)``), the same bits on every run: :func:`_sorted_bin_sums` on CUDA, where ``index_add`` adds
     with atomics or, under deterministic algorithms, in a serial per-bin loop (~13 ms per call on an H200);
     ``index_add`` elsewhere, deterministic on a CPU and ~10x faster there than the sort."""
@@ -60,7 +60,8 @@ def _sorted_bin_sums(index: Tensor, values: Tensor, bins: int) -> Tensor:
     """:func:`_bin_sums` in 64-bit fixed point of ``2^-s`` units (``s`` per row, the largest that keeps the
     row's sum of magnitudes under ``2^61``; rounding ``<= 2^-(s+1)`` per value), as differences of prefix sums
     over a stable sort of ``index``: exact integer sums, the same bits on every run and device, no atomics. A bin
-    that receives a non-finite value is NaN, as with ``index_add``; the other bins keep their sums."""
+    that receives a NaN or an infinity is NaN (``index_add`` gives NaN or that infinity); the other bins keep
+    their sums."""
     sorted_index, order = torch.sort(index, stable=True)
     values = values[:, order]
     finite = values.isfinite()
