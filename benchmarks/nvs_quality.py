@@ -7,7 +7,9 @@ schedule) on the same single reference image, rendered at the target cameras und
 reference image itself, copied to every target, is reported as the trivial floor ("reference-copy"), and
 the geometric warp hint alone ("warp-hint": the reference forward-warped with its depth, exactly as a
 warp-hint model sees it, upsampled to the image size). The model and the hint take the reference's metric
-depth from ``--geometry`` (default: the depth maps stored with the data, so render them).
+depth from ``--geometry`` (default: the depth maps stored with the data, so render them); ``--depth-noise
+RELATIVE EDGE_PX`` perturbs that depth as the fine-tuning's ``depth_noise_*`` does (every map, ``sigma =
+RELATIVE``), to measure what a sparse reconstruction's depth costs the model (``benchmarks/sparse_depth.py``).
 Writes benchmarks/results/nvs_quality/{nvs_quality.json, nvs_quality.md} (scratch runs: outputs/benchmarks/nvs_quality/).
 
     python -m diamond_sss.cli.main synth --shape torus --material marble --seed 21 --out /tmp/nvs/torus \\
@@ -18,16 +20,19 @@ Writes benchmarks/results/nvs_quality/{nvs_quality.json, nvs_quality.md} (scratc
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
 
 import torch
+from torch import Tensor
 
 from diamond_sss.data import DataError, OLATDataset
 from diamond_sss.data.images import load_rgba
 from diamond_sss.diffusion.common.manifest import read_image_manifest
-from diamond_sss.diffusion.geometry import GeometrySource, geometry_source
+from diamond_sss.diffusion.geometry import GeometryMaps, GeometrySource, geometry_source
+from diamond_sss.diffusion.nvs.depth_noise import move_outline, smooth_relative_error
 from diamond_sss.diffusion.nvs.model import NVSModel
 from diamond_sss.diffusion.nvs.pipeline import (
     TargetCameras,
@@ -46,6 +51,26 @@ RESULTS = Path(__file__).resolve().parent / "results" / "nvs_quality"
 WORK = Path(__file__).resolve().parents[1] / "outputs" / "benchmarks" / "nvs_quality"
 """Scratch folder of the baseline runs and generated images (outside the committed results)."""
 ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 181))
+
+
+class PerturbedDepth(GeometrySource):
+    """``source``'s maps with their depth's outline moved by ``edge_px`` pixels and a smooth relative error of
+    standard deviation ``relative`` (:mod:`diamond_sss.diffusion.nvs.depth_noise`), drawn from ``seed`` and the view."""
+
+    def __init__(self, source: GeometrySource, relative: float, edge_px: int, seed: int = 0) -> None:
+        self.source, self.relative, self.edge_px, self.seed = source, relative, edge_px, seed
+
+    def maps(self, dataset: OLATDataset, view: int, image: Tensor, mask: Tensor) -> GeometryMaps:
+        maps = self.source.maps(dataset, view, image, mask)
+        depth = maps.depth.permute(2, 0, 1)[None]
+        generator = torch.Generator().manual_seed(self.seed * 1_000_003 + view)
+        depth = move_outline(depth, self.edge_px)
+        depth = depth * smooth_relative_error(depth, self.relative, generator) * (depth > 0)
+        return dataclasses.replace(maps, depth=depth[0].permute(1, 2, 0))
+
+    def key(self) -> dict:
+        return {"kind": "perturbed", "source": self.source.key(), "relative": self.relative,
+                "edge_px": self.edge_px, "seed": self.seed}
 
 
 def single_image_capture(data: Path, view: int, light: int, out: Path) -> Path:
@@ -210,6 +235,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--geometry", default="maps", help="reference depth for the warp hint: 'maps' or a run folder"
     )
+    parser.add_argument("--depth-noise", type=float, nargs=2, default=None, metavar=("RELATIVE", "EDGE_PX"),
+                        help="perturb the reference depth: a smooth relative error of this standard deviation and "
+                             "the outline moved by EDGE_PX pixels (> 0 dilates)")
     parser.add_argument("--out", type=Path, default=RESULTS, help="folder of nvs_quality.{json,md}")
     parser.add_argument("--work", type=Path, default=WORK,
                         help="folder of the baseline runs and generated images, one subfolder per capture")
@@ -238,6 +266,8 @@ def main() -> None:
     check_reference(args)
     model = args.model or default_model_dir()
     geometry = geometry_source(args.geometry)
+    if args.depth_noise is not None:
+        geometry = PerturbedDepth(geometry, args.depth_noise[0], int(args.depth_noise[1]))
     rows = []
     for data in args.data:
         rows += evaluate_object(

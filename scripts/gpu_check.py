@@ -52,6 +52,8 @@ PRIOR_MODEL = ["--image-size", "64", "--block-out-channels", "48", "96", "96", "
 but 8 objects (32 target views) per step, not 4: at 64 px a step of this model should be kernel launches more than
 arithmetic on an H100/H200 (~1 TFLOP per 16 views; session 17 measured 0.16 s per step in fp32), so twice the batch
 should cost little time (unmeasured: the report gives the seconds per step)."""
+DEPTH_NOISE_FLAGS = ("depth-noise-share", "depth-noise-relative", "depth-noise-edge-px")
+"""``finetune-nvs`` flags that ``--prior-depth-noise`` sets, in its order."""
 PRIOR_MAX_STEPS = 1_000_000
 """Never reached: the prior's run ends at its time limit (the learning rate is constant after the warm-up)."""
 PRIOR_GRACE_S = 300
@@ -78,14 +80,17 @@ def run_step(name: str, command: list[str], out: Path, timeout: int, env: dict[s
 
 
 def run_nvs_prior(cli: list[str], data: list[Path], minutes: float, out: Path, env: dict[str, str],
-                  precision: str = "no", init: Path | None = None) -> dict:
+                  precision: str = "no", init: Path | None = None, depth_noise: list[float] | None = None) -> dict:
     """Train the GPU prior for ``minutes`` of wall time (``finetune-nvs --time-limit-s``: it stops checkpointed at
     the first step past it) in ``precision`` (autocast), from ``init``'s weights when given (an earlier lease's
-    prior, carried back), and export its EMA weights in fp16 to ``out/nvs_prior_model``."""
+    prior, carried back), with the reference depth perturbed as ``depth_noise`` = (share, relative, edge_px) says
+    when given, and export its EMA weights in fp16 to ``out/nvs_prior_model``."""
     run = out / "nvs_prior_run"
+    noise = [] if depth_noise is None else [
+        f"--{flag}={value:g}" for flag, value in zip(DEPTH_NOISE_FLAGS, depth_noise, strict=True)]
     command = cli + ["finetune-nvs", "--out", str(run), "--data", *map(str, data), *PRIOR_MODEL,
                      "--steps", str(PRIOR_MAX_STEPS), "--time-limit-s", f"{minutes * 60:g}",
-                     "--mixed-precision", precision, *(["--init-from", str(init)] if init else [])]
+                     "--mixed-precision", precision, *(["--init-from", str(init)] if init else []), *noise]
     result = run_step("nvs-prior", command, out, int(minutes * 60) + PRIOR_GRACE_S, env)
     if (last := last_log_record(run / "train_log.jsonl")) is not None:
         result["summary"] = (f"{last['step']} steps, loss {last['loss']:.4f}, {last['seconds']:.3f} s at the last "
@@ -172,6 +177,10 @@ def main() -> None:
     parser.add_argument("--prior-init", type=Path, default=None,
                         help="model folder the prior starts from (an earlier run's nvs_prior_model): its training "
                              "goes on across leases")
+    parser.add_argument("--prior-depth-noise", type=float, nargs=3, default=None,
+                        metavar=("SHARE", "RELATIVE", "EDGE_PX"),
+                        help="train the prior on reference depth perturbed like a sparse reconstruction's render "
+                             "(finetune-nvs --depth-noise-*; benchmarks/sparse_depth.py calibrates them)")
     args = parser.parse_args()
     import torch
 
@@ -222,7 +231,7 @@ def main() -> None:
             continue
         if name == "nvs-prior":
             result = run_nvs_prior(cli, args.prior_data, args.prior_minutes, out, env, args.prior_precision,
-                                   args.prior_init)
+                                   args.prior_init, args.prior_depth_noise)
         else:
             result = run_step(name, commands[name], out, args.timeout, env)
         if summary := step_summary(name, result, out):

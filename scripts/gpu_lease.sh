@@ -15,6 +15,8 @@
 #       nvs-speed train eval --prior-minutes 8 --prior-init src/diamond_sss/assets/models/nvs
 #                       # the shipped prior trained on (no gsplat needed): ~2,300 steps of 32 images; then copy the
 #                       # returned nvs_prior_model/ over it once scripts/judge_prior.sh has judged it
+#       ... --prior-depth-noise 0.5 0.15 1   # the same on reference depth perturbed like a 3-view reconstruction's
+#                       # render for half the references (benchmarks/sparse_depth.py; RESULTS, novel-view section)
 #   WHEELS=outputs/wheels_lean OUT=$OUT scripts/gpu_lease.sh --skip suite speed speed-raster train eval \
 #       --prior-minutes 6 --prior-init src/diamond_sss/assets/models/nvs   # CUDA tests, the step profiled, the prior
 # Carry ["outputs/wheels"] (~58 MiB; no captures, so no prior):

@@ -101,6 +101,27 @@ def test_the_nvs_prior_trains_for_its_minutes_of_wall_time_and_is_exported_in_fp
         assert torch.equal(b, a.half().float() if a.is_floating_point() else a), key
 
 
+def test_the_priors_depth_noise_reaches_finetune_nvs(tmp_path, monkeypatch):
+    from tiny_models import TINY_NVS
+
+    import diamond_sss.diffusion.nvs.train as nvs_train
+    from diamond_sss.cli.main import main
+
+    script = tmp_path / "fake_cli.py"
+    script.write_text(FAKE_FINETUNE % json.dumps(TINY_NVS))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT / "src"), os.environ.get("PYTHONPATH")]))}
+    result = gpu_check.run_nvs_prior([sys.executable, str(script)], [tmp_path], 1.0, tmp_path, env,
+                                     depth_noise=[0.5, 0.15, 1])
+    assert result["exit_code"] == 0
+    args = json.loads((tmp_path / "nvs_prior_run" / "args.json").read_text())
+    seen = {}
+    monkeypatch.setattr(nvs_train, "finetune", lambda data, out, config, **_: seen.update(config=config) or out)
+    main(args)  # the command the lease runs, parsed by the real command line
+    config = seen["config"]
+    assert (config.depth_noise_share, config.depth_noise_relative, config.depth_noise_edge_px) == (0.5, 0.15, 1)
+    assert config.model.image_size == 64 and config.model.hint_residual
+
+
 def test_the_prior_options_are_ones_finetune_nvs_takes():
     from diamond_sss.cli.nvs_commands import FinetuneOptions, NVSModelOptions
 

@@ -167,3 +167,21 @@ def test_a_missing_or_damaged_capture_stops_naming_the_option_the_file_and_the_k
     (damaged / "transforms_train.json").write_text(json.dumps({"frames": [{"file_paths": []}]}))
     with pytest.raises(SystemExit, match="--data: .*transforms_train.json: frame 0: key 'transform_matrix': missing"):
         nvs.check_reference(nvs.parse_args(["--data", str(damaged)]))
+
+
+def test_perturbed_depth_moves_the_stored_depth_per_view_and_keys_itself_apart():
+    from diamond_sss.data.embedded import embedded_dataset
+    from diamond_sss.diffusion.geometry import StoredMapsGeometry
+
+    dataset = OLATDataset(embedded_dataset("finetune/torus_jade"))
+    photo = dataset.load(dataset.observation_index(0, 0))
+    stored = StoredMapsGeometry().maps(dataset, 0, photo.rgb, photo.mask).depth
+    source = nvs.PerturbedDepth(StoredMapsGeometry(), relative=0.1, edge_px=1)
+    first = source.maps(dataset, 0, photo.rgb, photo.mask)
+    assert torch.equal(first.depth, source.maps(dataset, 0, photo.rgb, photo.mask).depth)  # one draw per view
+    assert int((first.depth > 0).sum()) > int((stored > 0).sum())  # the outline dilated by a pixel
+    both = (first.depth > 0) & (stored > 0)
+    ratio = first.depth[both] / stored[both]
+    assert 0.5 < float(ratio.min()) < 1 < float(ratio.max()) < 1.5 and not torch.equal(first.depth, stored)
+    assert source.key() == {"kind": "perturbed", "source": {"kind": "maps"}, "relative": 0.1, "edge_px": 1,
+                            "seed": 0}

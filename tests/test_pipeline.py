@@ -282,3 +282,18 @@ def test_auto_augment_follows_the_shipped_model_folders(tmp_path, monkeypatch):
     assert parse_augment("auto") == ("relight",)  # a folder without config.json is no model
     (nvs_dir / "config.json").write_text("{}")
     assert parse_augment("auto") == ("nvs", "relight")
+
+
+def test_the_novel_views_warp_with_the_geometry_given_or_else_the_preliminary_reconstruction(setup, tmp_path):
+    from diamond_sss.diffusion.geometry import StoredMapsGeometry
+    from diamond_sss.diffusion.geometry.sources import RenderedGeometry
+    from diamond_sss.pipeline.run import checked_config, nvs_geometry
+
+    prelim = tmp_path / "prelim"
+    train_run(setup[0], prelim, regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
+    default = nvs_geometry(PipelineConfig(), prelim)
+    assert isinstance(default, RenderedGeometry) and default.run == prelim
+    assert isinstance(nvs_geometry(PipelineConfig(nvs_geometry="maps"), prelim), StoredMapsGeometry)
+    assert nvs_geometry(PipelineConfig(nvs_geometry=str(prelim)), tmp_path / "unused").run == prelim
+    with pytest.raises(ValueError, match="pipeline config 'nvs_geometry': geometry source .*missing"):
+        checked_config(PipelineConfig(nvs_geometry=str(tmp_path / "missing")))

@@ -26,6 +26,11 @@ class PipelineConfig:
     relight_lights: int = described(8, "at most this many missing lights generated per view (0: all)")
     nvs_model: str | None = described(None, "folder of a novel-view model (default: the shipped one)")
     relight_model: str | None = described(None, "folder of a relighting model (default: the shipped one)")
+    nvs_geometry: str | None = described(None, "metric depth of the real views that the novel-view model's warp "
+                                               "hint splats: a --geometry source with metric depth (maps: the "
+                                               "capture's stored depth maps, e.g. a depth sensor's; or a "
+                                               "reconstruction run folder); default: the preliminary "
+                                               "reconstruction's render")
     nvs_steps: int = described(1, "DDIM steps of the novel-view model (the shipped model is best with 1)")
     relight_steps: int = described(1, "DDIM steps of the relighting model (the shipped model is best with 1)")
     relight_samples: int = described(8, "relighting samples averaged per image (test-time ensemble)")

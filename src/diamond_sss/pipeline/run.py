@@ -33,7 +33,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -53,6 +53,9 @@ from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.trainer import ImageSource
 from diamond_sss.utils.device import resolve_device
 from diamond_sss.utils.io import atomic_write_json, move_aside, sha256_file, sha256_json
+
+if TYPE_CHECKING:
+    from diamond_sss.diffusion.geometry import GeometrySource
 
 
 @dataclass
@@ -243,6 +246,14 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
                          "every round is the same reconstruction")
     if not (math.isfinite(cfg.agreement_power) and cfg.agreement_power >= 0.0):
         raise ValueError(f"pipeline config 'agreement_power' must be a finite number >= 0, got {cfg.agreement_power}")
+    if cfg.nvs_geometry is not None:
+        from diamond_sss.diffusion.geometry import geometry_source
+        from diamond_sss.diffusion.geometry.base import GeometryError
+
+        try:
+            geometry_source(cfg.nvs_geometry)
+        except GeometryError as exc:
+            raise ValueError(f"pipeline config 'nvs_geometry': {exc}") from exc
     return cfg
 
 
@@ -324,17 +335,27 @@ def prelim_stage(ctx: PipelineContext) -> dict:
     return {"real_images": len(ctx.selection.observations), "steps": result.steps}
 
 
+def nvs_geometry(cfg: PipelineConfig, prelim_dir: Path) -> GeometrySource:
+    """The source of the real views' depth that the novel-view warp hint splats: ``cfg.nvs_geometry`` (a
+    ``--geometry`` spec) when given, else the preliminary reconstruction in ``prelim_dir``."""
+    from diamond_sss.diffusion.geometry import geometry_source
+    from diamond_sss.diffusion.geometry.sources import RenderedGeometry
+
+    if cfg.nvs_geometry is None:
+        return RenderedGeometry(prelim_dir, device=cfg.device)
+    return geometry_source(cfg.nvs_geometry, device=cfg.device)
+
+
 def nvs_stage(ctx: PipelineContext) -> dict:
     """Novel views into ``<out>/nvs``: under each real light, the (spread) missing views generated from the nearest
     real view."""
-    from diamond_sss.diffusion.geometry.sources import RenderedGeometry
     from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
 
     cfg, real = ctx.cfg, ctx.real
     real_views = set(ctx.selection.views)
     missing = [v for v in range(real.num_views) if v not in real_views]
     targets = spread_subset(missing, ctx.view_dirs, cfg.nvs_views, ctx.seed)
-    geometry = RenderedGeometry(ctx.prelim_dir, device=cfg.device)
+    geometry = nvs_geometry(cfg, ctx.prelim_dir)
     calls = 0
     for light in sorted(set(ctx.selection.lights)):
         sources = [v for v in sorted(real_views) if bool(real.presence[v, light])]

@@ -162,6 +162,10 @@ class FinetuneConfig:
         init_from: a model folder (``finetune-nvs``'s ``model``, ``convert-free3d``'s output) whose weights start
             the run instead of a random initialisation; its architecture must be ``model``'s. A run resumed from
             a checkpoint continues from the checkpoint's weights.
+        depth_noise_share: share of the references whose depth (the warp hint's input) is perturbed to look like
+            a sparse reconstruction's render (``diffusion/nvs/depth_noise.py``); 0: the stored true depth.
+        depth_noise_relative: the largest standard deviation of the perturbation's smooth relative depth error.
+        depth_noise_edge_px: the largest dilation or erosion of the depth's outline (pixels of the generated image).
         model: architecture and noise schedule.
     """
 
@@ -180,4 +184,17 @@ class FinetuneConfig:
     time_limit_s: float | None = None
     mixed_precision: str = "no"
     init_from: str | None = None
+    depth_noise_share: float = 0.0
+    depth_noise_relative: float = 0.0
+    depth_noise_edge_px: int = 0
     model: NVSConfig = field(default_factory=NVSConfig)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.depth_noise_share <= 1.0:
+            raise ValueError(f"depth_noise_share must be in [0, 1], got {self.depth_noise_share}")
+        bad = {name: getattr(self, name) for name in ("depth_noise_relative", "depth_noise_edge_px")
+               if not getattr(self, name) >= 0}
+        if bad:
+            raise ValueError(f"{', '.join(bad)} must be >= 0, got {bad}")
+        if self.depth_noise_share > 0 and not self.model.warp_hint:
+            raise ValueError("depth_noise_share perturbs the warp hint's depth: it needs a model with warp_hint=True")

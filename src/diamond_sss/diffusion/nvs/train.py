@@ -28,6 +28,7 @@ from diamond_sss.diffusion.common.runtime import (
 from diamond_sss.diffusion.common.schedulers import make_ddpm_scheduler
 from diamond_sss.diffusion.nvs.config import FinetuneConfig
 from diamond_sss.diffusion.nvs.data import Sequence, fixed_light_sequences, sample_batch
+from diamond_sss.diffusion.nvs.depth_noise import perturb_depth
 from diamond_sss.diffusion.nvs.model import NVSBatch, NVSModel
 from diamond_sss.training.checkpoint import (
     latest_accelerate_checkpoint,
@@ -83,6 +84,11 @@ def step_batch(state: TrainingState, config: FinetuneConfig, step: int) -> NVSBa
     """The batch of step ``step`` (a pure function of ``config.seed`` and ``step``), on the training device."""
     generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
     batch = sample_batch(state.sequences, config.objects_per_batch, config.views_per_object, generator)
+    if batch.reference_depth is not None:
+        batch.reference_depth = perturb_depth(
+            batch.reference_depth, generator, config.depth_noise_share, config.depth_noise_relative,
+            config.depth_noise_edge_px, pixel_scale=config.model.warp_supersample,
+        )
     return _to_device(batch, state.accelerator.device)
 
 
