@@ -19,7 +19,8 @@ statistics side by side, so that the fine-tuning's depth noise is calibrated aga
         outputs/benchmarks/regimes_counts/*/views5_lights6/sss3dgs --noise share=1 relative=0.15 edge_px=1 \
         --tag s30
 
-Writes ``<tag>.{md,json}`` to --results.
+Writes ``<tag>.{md,json}`` and ``<tag>.png`` (per view: true | rendered | perturbed depth, and the rendered depth's
+relative error, blue = too near, red = too far, +-20%) to --results.
 """
 
 from __future__ import annotations
@@ -28,17 +29,22 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+from matplotlib import colormaps
 from torch import Tensor
 
 from diamond_sss.data import OLATDataset
 from diamond_sss.diffusion.geometry.sources import RenderedGeometry
 from diamond_sss.diffusion.nvs.depth_noise import dilate, erode, perturb_depth
+from diamond_sss.evaluation.figures import save_image_grid
 
 RESULTS = Path(__file__).resolve().parent / "results" / "sparse_depth"
 OUTLINE_RANGE = range(-4, 5)
 STATS = ("iou", "outline_px", "far_added", "median_rel", "spread_rel", "smooth_share")
+ERROR_RANGE = 0.2
+"""Relative depth error at the ends of the figure's colour scale."""
 
 
 def depth_stats(depth: Tensor, truth: Tensor) -> dict[str, float]:
@@ -64,8 +70,23 @@ def depth_stats(depth: Tensor, truth: Tensor) -> dict[str, float]:
             "spread_rel": float((high - low) / 2), "smooth_share": max(smooth, 0.0)}
 
 
+def depth_panels(truth: Tensor, rendered: Tensor, perturbed: Tensor) -> list[np.ndarray]:
+    """Display images ``[H,W,3]`` of three camera-z maps ``[1,1,H,W]`` (one shared scale, background black) and of
+    the rendered map's relative error (``coolwarm``, +-:data:`ERROR_RANGE`, white where either map is empty)."""
+    near, far = float(truth[truth > 0].min()), float(truth.max())
+    panels = []
+    for depth in (truth, rendered, perturbed):
+        scaled = ((depth[0, 0] - near) / max(far - near, 1e-9)).clamp(0, 1).numpy()
+        panels.append(np.where((depth[0, 0] > 0).numpy()[..., None], colormaps["viridis"](scaled)[..., :3], 0.0))
+    both = ((truth > 0) & (rendered > 0))[0, 0]
+    error = ((rendered - truth) / truth.clamp_min(1e-9))[0, 0] / (2 * ERROR_RANGE) + 0.5
+    panels.append(np.where(both.numpy()[..., None], colormaps["coolwarm"](error.clamp(0, 1).numpy())[..., :3], 1.0))
+    return panels
+
+
 def run_rows(run: Path, noise: dict[str, float], seed: int) -> list[dict]:
-    """One row per real view of reconstruction ``run``: its rendered depth's and the perturbed truth's statistics."""
+    """One row per real view of reconstruction ``run``: its rendered depth's and the perturbed truth's statistics
+    (and, under ``panels``, the figure's images of the view)."""
     data = Path(json.loads((run / "data.json").read_text())["data"])
     views = json.loads((run / "regime.json").read_text())["views"]
     dataset = OLATDataset(data, "train")
@@ -78,7 +99,7 @@ def run_rows(run: Path, noise: dict[str, float], seed: int) -> list[dict]:
         rendered = rendered.permute(2, 0, 1)[None].float()
         perturbed = perturb_depth(truth, generator, **noise)
         rows.append({"run": str(run), "view": view, "rendered": depth_stats(rendered, truth),
-                     "perturbed": depth_stats(perturbed, truth)})
+                     "perturbed": depth_stats(perturbed, truth), "panels": depth_panels(truth, rendered, perturbed)})
     return rows
 
 
@@ -126,6 +147,10 @@ def main() -> None:
     noise = {"share": 1.0, "relative": 0.0, "edge_px": 0, **dict(args.noise)}
     rows = [row for run in args.runs for row in run_rows(run, noise, args.seed)]
     args.results.mkdir(parents=True, exist_ok=True)
+    save_image_grid(args.results / f"{args.tag}.png", [row.pop("panels") for row in rows],
+                    row_labels=[f"{Path(r['run']).parent.parent.name[:12]} {Path(r['run']).parent.name} v{r['view']}"
+                                for r in rows],
+                    col_labels=["true depth", "rendered", "perturbed", f"rendered error (+-{ERROR_RANGE:.0%})"])
     (args.results / f"{args.tag}.json").write_text(json.dumps({"noise": noise, "rows": rows}, indent=1))
     table = markdown(rows, noise, args.note)
     (args.results / f"{args.tag}.md").write_text(table)

@@ -46,3 +46,14 @@ def test_a_membrane_counts_as_far_added_support_and_a_gradient_is_smooth():
     assert sparse_depth.depth_stats(noise, truth)["smooth_share"] < 0.1  # pixel noise: blurred away
     empty = sparse_depth.depth_stats(torch.zeros_like(truth), truth)
     assert empty["iou"] == 0 and math.isnan(empty["median_rel"])
+
+
+def test_the_figure_panels_share_the_truths_scale_and_colour_the_error_by_sign():
+    truth = disc()
+    too_far = truth * 1.2
+    panels = sparse_depth.depth_panels(truth, too_far, truth)
+    assert len(panels) == 4 and all(p.shape == (32, 32, 3) and 0 <= p.min() and p.max() <= 1 for p in panels)
+    assert (panels[0] == panels[2]).all() and (panels[0][0, 0] == 0).all()  # same map, same colours; black background
+    assert (panels[3][0, 0] == 1).all()  # white where neither map has depth
+    red, blue = panels[3][16, 16], sparse_depth.depth_panels(truth, truth * 0.8, truth)[3][16, 16]
+    assert red[0] > red[2] and blue[2] > blue[0]  # too far: the warm end; too near: the cool end
