@@ -21,6 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from diamond_sss.utils import rng
+
 
 def dilate(support: Tensor, radius: int) -> Tensor:
     """``[B,1,H,W]`` 0/1 mask dilated by a ``(2r+1)^2`` square (Chebyshev distance ``<= radius``)."""
@@ -59,9 +61,8 @@ def smooth_relative_error(depth: Tensor, sigma: float | Tensor, generator: torch
     """Factors ``(1 + sigma f).clamp(min=0.05)`` ``[B,1,H,W]`` for ``depth [B,1,H,W]``: ``f`` standard normal on a
     ``(grid+1)^2`` lattice per map, bilinearly interpolated over it; ``sigma`` a number or ``[B]``."""
     batch, _, height, width = depth.shape
-    lattice = torch.randn(batch, 1, grid + 1, grid + 1, generator=generator, device=generator.device)
-    field = F.interpolate(lattice.to(depth.device, depth.dtype), size=(height, width), mode="bilinear",
-                          align_corners=True)
+    lattice = rng.randn(batch, 1, grid + 1, grid + 1, generator=generator, device=depth.device, dtype=depth.dtype)
+    field = F.interpolate(lattice, size=(height, width), mode="bilinear", align_corners=True)
     sigma = torch.as_tensor(sigma, dtype=depth.dtype).to(depth.device).reshape(-1, 1, 1, 1)
     return (1 + sigma * field).clamp_min(0.05)
 
@@ -86,10 +87,9 @@ def perturb_depth(
     if share == 0.0:
         return depth
     batch = depth.shape[0]
-    draw = generator.device
-    chosen = torch.rand(batch, generator=generator, device=draw) < share
-    edges = torch.randint(-edge_px, edge_px + 1, (batch,), generator=generator, device=draw)
-    sigmas = relative * torch.rand(batch, generator=generator, device=draw)
+    chosen = rng.rand(batch, generator=generator) < share
+    edges = rng.randint(2 * edge_px + 1, batch, generator=generator) - edge_px
+    sigmas = relative * rng.rand(batch, generator=generator)
     factors = smooth_relative_error(depth, sigmas, generator, grid)
     out = []
     for b in range(batch):
