@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from matplotlib import colormaps
 from torch import Tensor
 
-from diamond_sss.data import OLATDataset
+from diamond_sss.data import DataError, OLATDataset
 from diamond_sss.diffusion.geometry.sources import RenderedGeometry
 from diamond_sss.diffusion.nvs.depth_noise import dilate, erode, perturb_depth
 from diamond_sss.evaluation.figures import save_image_grid
@@ -84,11 +84,18 @@ def depth_panels(truth: Tensor, rendered: Tensor, perturbed: Tensor) -> list[np.
     return panels
 
 
+def recorded(path: Path, key: str):
+    """``key`` of the JSON file ``path`` a run folder records; a missing or damaged file or key stops, naming both."""
+    try:
+        return json.loads(path.read_text())[key]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise SystemExit(f"sparse_depth: {path}: no readable '{key}' ({type(exc).__name__}: {exc})") from exc
+
+
 def run_rows(run: Path, noise: dict[str, float], seed: int) -> list[dict]:
     """One row per real view of reconstruction ``run``: its rendered depth's and the perturbed truth's statistics
     (and, under ``panels``, the figure's images of the view)."""
-    data = Path(json.loads((run / "data.json").read_text())["data"])
-    views = json.loads((run / "regime.json").read_text())["views"]
+    data, views = Path(recorded(run / "data.json", "data")), recorded(run / "regime.json", "views")
     dataset = OLATDataset(data, "train")
     geometry = RenderedGeometry(run)
     generator = torch.Generator().manual_seed(seed)
@@ -145,7 +152,10 @@ def main() -> None:
     if missing:
         parser.error(f"--runs: not finished reconstruction runs (no model.safetensors): {', '.join(missing)}")
     noise = {"share": 1.0, "relative": 0.0, "edge_px": 0, **dict(args.noise)}
-    rows = [row for run in args.runs for row in run_rows(run, noise, args.seed)]
+    try:
+        rows = [row for run in args.runs for row in run_rows(run, noise, args.seed)]
+    except DataError as exc:  # e.g. a capture without stored depth maps: the truth this compares with
+        raise SystemExit(f"sparse_depth: {exc}") from exc
     args.results.mkdir(parents=True, exist_ok=True)
     save_image_grid(args.results / f"{args.tag}.png", [row.pop("panels") for row in rows],
                     row_labels=[f"{Path(r['run']).parent.parent.name[:12]} {Path(r['run']).parent.name} v{r['view']}"

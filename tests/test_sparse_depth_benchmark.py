@@ -57,3 +57,12 @@ def test_the_figure_panels_share_the_truths_scale_and_colour_the_error_by_sign()
     assert (panels[3][0, 0] == 1).all()  # white where neither map has depth
     red, blue = panels[3][16, 16], sparse_depth.depth_panels(truth, truth * 0.8, truth)[3][16, 16]
     assert red[0] > red[2] and blue[2] > blue[0]  # too far: the warm end; too near: the cool end
+
+
+def test_a_run_folder_with_a_damaged_record_stops_naming_the_file_and_key(tmp_path):
+    (tmp_path / "data.json").write_text("{not json")
+    with pytest.raises(SystemExit, match=r"data\.json: no readable 'data'"):
+        sparse_depth.recorded(tmp_path / "data.json", "data")
+    (tmp_path / "regime.json").write_text('{"spec": "views=3,lights=3"}')
+    with pytest.raises(SystemExit, match=r"regime\.json: no readable 'views' \(KeyError"):
+        sparse_depth.recorded(tmp_path / "regime.json", "views")
