@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import time
 from pathlib import Path
 
@@ -241,7 +242,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=RESULTS, help="folder of nvs_quality.{json,md}")
     parser.add_argument("--work", type=Path, default=WORK,
                         help="folder of the baseline runs and generated images, one subfolder per capture")
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    if args.depth_noise is not None:
+        relative, edge = args.depth_noise
+        if not (math.isfinite(relative) and relative >= 0 and math.isfinite(edge) and edge == int(edge)):
+            parser.error(f"--depth-noise {relative:g} {edge:g}: RELATIVE must be a finite number >= 0 and EDGE_PX "
+                         "a whole number of pixels")
+    return args
 
 
 def check_reference(args: argparse.Namespace) -> None:

@@ -88,6 +88,8 @@ def test_the_relative_error_is_smooth_and_the_outline_moves_both_ways():
 def test_settings_are_checked():
     with pytest.raises(ValueError, match="share must be in"):
         perturb_depth(ring(), torch.Generator(), 1.5, 0.1, 1)
+    with pytest.raises(ValueError, match="relative and edge_px must be finite"):
+        perturb_depth(ring(), torch.Generator(), 1.0, float("nan"), 1)
     with pytest.raises(ValueError, match=r"\[B,1,H,W\]"):
         perturb_depth(ring()[0], torch.Generator(), 1.0, 0.1, 1)
     with pytest.raises(ValueError, match="depth_noise_share must be in"):

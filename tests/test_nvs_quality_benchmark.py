@@ -185,3 +185,9 @@ def test_perturbed_depth_moves_the_stored_depth_per_view_and_keys_itself_apart()
     assert 0.5 < float(ratio.min()) < 1 < float(ratio.max()) < 1.5 and not torch.equal(first.depth, stored)
     assert source.key() == {"kind": "perturbed", "source": {"kind": "maps"}, "relative": 0.1, "edge_px": 1,
                             "seed": 0}
+
+
+@pytest.mark.parametrize("values", [["nan", "0"], ["-0.1", "0"], ["0.1", "1.5"]])
+def test_a_bad_depth_noise_is_refused_naming_the_option(values):
+    with pytest.raises(SystemExit):
+        nvs.parse_args(["--data", "x", "--depth-noise", *values])

@@ -17,6 +17,8 @@ image). Everything is drawn from ``generator``, in a fixed order per map, so a b
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -84,6 +86,8 @@ def perturb_depth(
         raise ValueError(f"depth must have shape [B,1,H,W], got {tuple(depth.shape)}")
     if not 0.0 <= share <= 1.0:
         raise ValueError(f"share must be in [0, 1], got {share}")
+    if not (math.isfinite(relative) and relative >= 0 and edge_px >= 0):
+        raise ValueError(f"relative and edge_px must be finite and >= 0, got {relative} and {edge_px}")
     if share == 0.0:
         return depth
     batch = depth.shape[0]
