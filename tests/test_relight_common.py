@@ -111,13 +111,14 @@ def test_deterministic_kernels_are_scoped_to_the_call():
 
     @deterministic_kernels
     def body():
-        seen["inside"] = (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic)
+        seen["inside"] = (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic,
+                          torch.is_deterministic_algorithms_warn_only_enabled())
         raise RuntimeError("fails inside")
 
     before = (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic)
     with pytest.raises(RuntimeError, match="fails inside"):
         body()
-    assert seen["inside"] == (True, True)
+    assert seen["inside"] == (True, True, False)  # warn-only would let CUDA attention keep a random backward
     assert (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic) == before
 
 

@@ -23,14 +23,16 @@ R = TypeVar("R")
 def kernel_settings(deterministic: bool) -> Iterator[None]:
     """cuDNN and torch's kernel choice for the block, restored after: ``deterministic`` (cuDNN's deterministic
     convolution algorithms without autotuning, cuBLAS with a fixed workspace, ``CUBLAS_WORKSPACE_CONFIG=:4096:8``
-    unless set, and operations without a deterministic CUDA kernel warn instead of failing) or autotuned (cuDNN
-    benchmarks its algorithms, no deterministic algorithms asked for)."""
+    unless set, and an operation without a deterministic CUDA kernel raises: ``warn_only=True`` would let the
+    memory-efficient attention keep its non-deterministic backward, which made two seeded novel-view fine-tunes on
+    an H200 differ in 84 of 259 tensors, 2026-11-28) or autotuned (cuDNN benchmarks its algorithms, no
+    deterministic algorithms asked for)."""
     if deterministic:
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
     previous = (torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark,
                 torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
     torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = deterministic, not deterministic
-    torch.use_deterministic_algorithms(deterministic, warn_only=True)
+    torch.use_deterministic_algorithms(deterministic, warn_only=False)
     try:
         yield
     finally:
