@@ -10,6 +10,7 @@ import tyro
 
 from diamond_sss.cli.data_commands import info, regimes
 from diamond_sss.cli.demo import demo
+from diamond_sss.cli.model_commands import blend_models
 from diamond_sss.cli.nvs_commands import convert_free3d, finetune_nvs, nvs
 from diamond_sss.cli.pipeline_commands import run
 from diamond_sss.cli.relight_commands import finetune_relight, relight
@@ -24,7 +25,7 @@ def commands() -> dict[str, Callable[..., None]]:
     return {"demo": demo, "info": info, "regimes": regimes, "synth": synth, "config": config, "train": train,
             "eval": evaluate, "render": render, "export": export, "view": view, "ablate": ablate, "run": run,
             "tune": tune, "finetune-relight": finetune_relight, "relight": relight, "finetune-nvs": finetune_nvs,
-            "nvs": nvs, "convert-free3d": convert_free3d}
+            "nvs": nvs, "convert-free3d": convert_free3d, "blend-models": blend_models}
 
 
 def configure_logging() -> None:
