@@ -6,11 +6,13 @@
 # those captures, runs gpu_check.py with the arguments given, and leaves in $OUT: report.md, the fp16 prior
 # (nvs_prior_model/, when trained) and everything else packed into gpu_check.tgz (logs, report.json, speed tables,
 # the prior's train_log.jsonl).
-# The checkout is ~40 MiB since it holds the shipped novel-view model (12 MiB), so all wheels (~18 MiB) and the
-# captures (~10 MiB) beside it exceed the 64 MiB that travel: a call that trains the prior carries the wheels without
-# optuna and its database packages (~13 MiB; only the suite and the tuning need them), made here by
-# `LEAN=1 scripts/fetch_gpu_wheels.sh .venv/bin/python outputs/wheels_lean`, and names them in WHEELS.
-# Carry ["outputs/wheels_lean", "outputs/priors.tgz"] (~62 MiB with the checkout):
+# The checkout is ~44 MB (the shipped models 16 MB, benchmarks/results/ 15 MB), so all wheels (~18 MB) and the
+# captures (~10 MB) beside it exceed the 64 MiB that travel: a call that trains the prior carries the wheels without
+# optuna and its database packages (~13 MB; only the suite and the tuning need them), made here by
+# `LEAN=1 scripts/fetch_gpu_wheels.sh .venv/bin/python outputs/wheels_lean`, and names them in WHEELS; and since
+# session 31 it also needs benchmarks/results/ moved out of the checkout for the call (`mv benchmarks/results
+# /tmp/results_aside` before, back after: no GPU step reads it), which leaves ~52 MB.
+# Carry ["outputs/wheels_lean", "outputs/priors.tgz"]:
 #   WHEELS=outputs/wheels_lean OUT=$OUT scripts/gpu_lease.sh --skip build cuda-tests suite speed speed-raster \
 #       nvs-speed train eval --prior-minutes 8 --prior-init src/diamond_sss/assets/models/nvs
 #                       # the shipped prior trained on (no gsplat needed): ~2,300 steps of 32 images; then copy the
