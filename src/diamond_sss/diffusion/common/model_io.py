@@ -117,7 +117,7 @@ def blend_model_folders(first: str | os.PathLike, second: str | os.PathLike, wei
         raise ValueError(f"{first / CONFIG_NAME} and {second / CONFIG_NAME} differ in {differing}: "
                          "only models of one architecture and layout blend")
     if out.resolve() in (first.resolve(), second.resolve()):
-        raise ValueError(f"--out {out} is one of the models blended: write the blend to a new folder")
+        raise ValueError(f"the output folder {out} is one of the models blended: write the blend to a new folder")
     state = interpolate_weights(load_safetensors(first / WEIGHTS_NAME), load_safetensors(second / WEIGHTS_NAME),
                                 weight)
     atomic_save_safetensors(out / WEIGHTS_NAME, state)
