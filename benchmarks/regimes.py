@@ -116,7 +116,8 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
                pipeline_set: dict[str, str] | None = None, tag: str = "", seed: int = 0) -> tuple[Path, dict]:
     """Train and evaluate one method in ``runs/<variant_name>``; returns its final run folder and test metrics
     (+ image counts). The pipeline methods reuse ``runs/sss3dgs`` as their preliminary reconstruction."""
-    overrides = {**short_schedule(iterations, dense=method == "dense"), "seed": seed}
+    overrides = {**short_schedule(iterations, dense=method == "dense", pipeline_final=method in ("+relight", "full")),
+                 "seed": seed}
     if method in ("sss3dgs", "+mv", "dense"):
         run = runs / method
         preset = "sss3dgs" if method == "sss3dgs" else "diamond"

@@ -86,14 +86,14 @@ def test_a_finished_run_is_reused_only_with_the_same_settings(tmp_path, monkeypa
     make_capture(data, views=6, lights=3, size=16)
     make_capture(data, views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
     runs = tmp_path / "runs"
-    monkeypatch.setattr(regimes, "short_schedule", lambda iterations, dense=False: {"iterations": iterations,
-                                                                                     "num_gaussians": 200})
+    monkeypatch.setattr(regimes, "short_schedule", lambda iterations, **_: {"iterations": iterations,
+                                                                               "num_gaussians": 200})
     run, first = regimes.run_method("sss3dgs", data, runs, "views=2,lights=1", 2)
     written = (run / "model.safetensors").stat().st_mtime_ns
     _, again = regimes.run_method("sss3dgs", data, runs, "views=2,lights=1", 2)
     assert (run / "model.safetensors").stat().st_mtime_ns == written and again == first  # reused as it was
-    monkeypatch.setattr(regimes, "short_schedule", lambda iterations, dense=False: {"iterations": iterations,
-                                                                                     "num_gaussians": 250})
+    monkeypatch.setattr(regimes, "short_schedule", lambda iterations, **_: {"iterations": iterations,
+                                                                               "num_gaussians": 250})
     regimes.run_method("sss3dgs", data, runs, "views=2,lights=1", 2)  # other settings: trained again
     aside = [path for path in runs.iterdir() if path.name.startswith("sss3dgs.")]
     assert len(aside) == 1 and (aside[0] / "model.safetensors").is_file()
@@ -111,8 +111,8 @@ def test_the_grid_has_a_row_per_object_with_each_runs_render_and_psnr(tmp_path, 
         make_capture(data, views=6, lights=3, size=16, camera_offset=offset)
         make_capture(data, views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
         objects.append(data)
-    monkeypatch.setattr(regimes, "short_schedule", lambda iterations, dense=False: {"iterations": iterations,
-                                                                                     "num_gaussians": 200})
+    monkeypatch.setattr(regimes, "short_schedule", lambda iterations, **_: {"iterations": iterations,
+                                                                               "num_gaussians": 200})
     finals, rows = {}, []
     for data in objects:
         run, metrics = regimes.run_method("sss3dgs", data, tmp_path / "runs" / data.name, regimes.NINE, 2)
@@ -127,3 +127,26 @@ def test_the_grid_has_a_row_per_object_with_each_runs_render_and_psnr(tmp_path, 
     assert [len(row) for row in drawn["grid"]] == [2, 2]
     assert drawn["cell_labels"][1] == ["ground truth", f"9: sss3dgs {rows[1]['psnr']:.2f}"]
     assert iio.imread(path).shape[0] > iio.imread(path).shape[1] / 2  # two rows of two cells
+
+
+def test_a_pipeline_rows_final_reconstruction_trains_on_the_rmse_and_its_baseline_on_l1(tmp_path, monkeypatch):
+    from diamond_sss.training.overrides import make_config
+
+    class Handed(Exception):
+        """Raised by the pipeline's stand-in once the final reconstruction's settings were handed over."""
+
+    handed = {}
+
+    def pipeline(data, folder, **kwargs):
+        handed.update(kwargs["overrides"])
+        raise Handed
+
+    monkeypatch.setattr(regimes, "run_pipeline", pipeline)
+    runs = tmp_path / "runs"
+    (runs / "sss3dgs").mkdir(parents=True)
+    (runs / "sss3dgs" / "model.safetensors").touch()  # a finished preliminary run: nothing trained here
+    with pytest.raises(Handed):
+        regimes.run_method("full", tmp_path / "capture", runs, regimes.NINE, 1000)
+    assert make_config("diamond", overrides=handed).losses.photometric_error == "rmse"
+    baseline = make_config("sss3dgs", overrides=regimes.short_schedule(1000))
+    assert baseline.losses.photometric_error == "l1"

@@ -34,6 +34,33 @@ def test_demo_overrides_are_unchanged():
         assert scaled["sss_lr_warmup_steps"] == n // 10  # the MLP's warm-up over the first 10%
     assert short_schedule(1000, dense=True) == {**DEMO_OVERRIDES_1000, "batch_size": 2, "sss_angular_inputs": True,
                                                 "photometric_error": "rmse"}
+    assert short_schedule(1000, pipeline_final=True) == {**DEMO_OVERRIDES_1000, "photometric_error": "rmse"}
+
+
+def test_the_demo_trains_its_baseline_on_l1_and_its_pipelines_final_reconstruction_on_the_rmse(tmp_path, monkeypatch):
+    from diamond_sss.experiments import demo
+
+    class Handed(Exception):
+        """Raised by the pipeline's stand-in once both runs' settings were handed over."""
+
+    handed = {}
+
+    def reconstruction(root, run, regime, preset, overrides, *args):
+        handed[preset] = overrides
+        return {}
+
+    def pipeline(root, out, **kwargs):
+        handed["pipeline"] = kwargs["overrides"]
+        raise Handed
+
+    monkeypatch.setattr(demo, "_reconstruction", reconstruction)
+    monkeypatch.setattr(demo, "run_pipeline", pipeline)
+    with pytest.raises(Handed):
+        demo.run_demo(tmp_path / "demo", data=tmp_path, iterations=1000, dense=False, show_progress=False)
+    baseline = make_config("sss3dgs", overrides=handed["sss3dgs"])
+    final = make_config("diamond", overrides=handed["pipeline"])
+    assert baseline.losses.photometric_error == "l1" and final.losses.photometric_error == "rmse"
+    assert baseline.schedule.iterations == final.schedule.iterations == 1000
 
 
 def test_only_a_long_dense_run_trains_the_sh_visibility_by_ray_tracing_alone_and_averages_its_last_steps():

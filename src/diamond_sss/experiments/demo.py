@@ -88,8 +88,8 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
              show_progress: bool = True) -> DemoResult:
     """SSS-3DGS (``sss3dgs`` preset, real images only), the DIAMOND-SSS pipeline (the SSS-3DGS run reused as its
     preliminary reconstruction, the shipped diffusion models, the final reconstruction with multi-view losses)
-    and, with ``dense``, DIAMOND-SSS on every image; all with ``short_schedule(iterations)`` (the dense one with
-    its dense budget). With ``parallel`` and two or more cores, the dense one trains in a second process while the
+    and, with ``dense``, DIAMOND-SSS on every image; all with ``short_schedule(iterations)`` (the pipeline's final
+    reconstruction with its own settings, the dense one with its dense budget). With ``parallel`` and two or more cores, the dense one trains in a second process while the
     other two train here (its progress bar here follows the steps it reports). Writes
     ``report.md`` and ``comparison.png`` into ``out``."""
     root = Path(data) if data is not None else embedded_dataset()
@@ -117,7 +117,8 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
         timed("SSS-3DGS (real images only)", out / "sss3dgs",
               lambda: _reconstruction(root, out / "sss3dgs", regime, "sss3dgs", overrides, show_progress, moved))
         timed("DIAMOND-SSS (full pipeline)", out / "diamond" / "final", lambda: run_pipeline(
-            root, out / "diamond", regime=regime, preset="diamond", overrides=overrides,
+            root, out / "diamond", regime=regime, preset="diamond",
+            overrides=short_schedule(iterations, pipeline_final=True),
             config=PipelineConfig(augment=augments, prelim_run=str(out / "sss3dgs")),
             show_progress=show_progress, move_changed_run=True))
         if dense:
