@@ -324,7 +324,7 @@ PIPELINE_FINAL_RUN: dict[str, Any] = {"photometric_error": "rmse"}
 """The DIAMOND-SSS pipeline's final reconstruction over a sparse capture (its real images and a few hundred generated
 ones) takes each image's RMSE as its photometric error, as a dense capture does (:data:`DENSE_SHORT_RUN`). Measured
 with the shipped diffusion models on issue 18's objects, 1000 steps: 30 images +0.21 dB mean over two draws of the
-images (bunny, torus, blob: -0.03 / +0.18 / +0.30 and +0.43 / -0.01 / +0.40), 9 images +0.05 / +0.25 / -0.12 /
+images (bunny, torus, blob: -0.03 / +0.18 / +0.30 and +0.43 / -0.01 / +0.39), 9 images +0.05 / +0.25 / -0.12 /
 -0.06 (bunny, torus, blob, bust; mean +0.03), the torus's other two draws +0.18 / -0.21 (benchmarks/RESULTS.md, issue
 18). With the diffusion models of session 25 it had cost the demo's 9-image pipeline 0.41 dB."""
 
