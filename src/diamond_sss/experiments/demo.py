@@ -89,9 +89,9 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
     """SSS-3DGS (``sss3dgs`` preset, real images only), the DIAMOND-SSS pipeline (the SSS-3DGS run reused as its
     preliminary reconstruction, the shipped diffusion models, the final reconstruction with multi-view losses)
     and, with ``dense``, DIAMOND-SSS on every image; all with ``short_schedule(iterations)`` (the pipeline's final
-    reconstruction with its own settings, the dense one with its dense budget). With ``parallel`` and two or more cores, the dense one trains in a second process while the
-    other two train here (its progress bar here follows the steps it reports). Writes
-    ``report.md`` and ``comparison.png`` into ``out``."""
+    reconstruction with its own settings, the dense one with its dense budget). With ``parallel`` and two or more
+    cores, the dense one trains in a second process while the other two train here (its progress bar here follows
+    the steps it reports). Writes ``report.md`` and ``comparison.png`` into ``out``."""
     root = Path(data) if data is not None else embedded_dataset()
     out = Path(out)
     overrides = short_schedule(iterations)
