@@ -17,7 +17,8 @@ outputs/benchmarks/objects. Metrics on the test split (novel views under novel l
         --real-shares 0.5 0
 
 Runs go to --out (resumable: a second call with the same arguments only collects); regimes.json, regimes.md and
-regimes_grid.png go to --results. The targets: at 9 images `full` beats `sss3dgs` by >= 2 dB PSNR and in mask
+regimes_grid.png go to --results. --noise-ceilings adds each rendered capture's noise ceiling (its test split
+rendered again with independent noise, once, into <out>/noise_reference; as `quality.py` does for the demo). The targets: at 9 images `full` beats `sss3dgs` by >= 2 dB PSNR and in mask
 IoU; at 30 images `full` is within 2 dB of `dense` (checked for every `full` variant).
 """
 
@@ -34,9 +35,11 @@ from diamond_sss.cli.synth_commands import synth
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.evaluation.evaluate import render_observation
 from diamond_sss.evaluation.figures import save_image_grid, to_display
+from diamond_sss.evaluation.noise import noise_ceiling
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.experiments.ablation import regime_slug
 from diamond_sss.pipeline.run import PipelineConfig, checked_config, run_pipeline
+from diamond_sss.synth.render import noise_reference_config, synthesize
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
@@ -68,6 +71,18 @@ def resolve_object(spec: str, size: int, spp: int) -> Path:
     if not (folder / "transforms_test.json").is_file():
         synth(shape=shape, material=material, out=folder, size=size, spp=spp, seed=7)
     return folder
+
+
+def test_split_ceiling(data: Path, references: Path) -> float | None:
+    """The noise ceiling (dB) of ``data``'s test split when ``data`` is a `diamond-sss synth` capture (it has a
+    ``meta.json``): the split rendered again with independent noise into ``references/<name>`` once (Mitsuba),
+    then PSNR(first, second) + 3.01 dB (:func:`noise_ceiling`); ``None`` for any other capture."""
+    if not (data / "meta.json").is_file():
+        return None
+    reference = references / data.name
+    if not (reference / "transforms_test.json").is_file():
+        synthesize(noise_reference_config(data, reference))
+    return noise_ceiling(OLATDataset(data, "test"), OLATDataset(reference, "test"))["ceiling_psnr"]
 
 
 def share_value(text: str) -> float | None:
@@ -192,7 +207,15 @@ def target_lines(rows: list[dict]) -> list[str]:
     return lines
 
 
-def markdown(rows: list[dict], iterations: int, note: str) -> str:
+def ceiling_lines(rows: list[dict], ceilings: dict[str, float | None]) -> list[str]:
+    """Each object's noise ceiling and how far under it its dense row lies, as Markdown bullets."""
+    dense = {r["object"]: r["psnr"] for r in rows if r["method"] == "dense"}
+    return [f"- {name}: {ceiling:.2f} dB" + (f" (dense row {ceiling - dense[name]:.2f} dB under it)"
+                                            if name in dense else "")
+            for name, ceiling in ceilings.items() if ceiling is not None]
+
+
+def markdown(rows: list[dict], iterations: int, note: str, ceilings: dict[str, float | None] | None = None) -> str:
     lines = [f"{iterations} steps per reconstruction (`short_schedule`), test split (novel views under novel lights). "
              "Pipeline rows: real images at least n / (n + "
              f"{PipelineConfig().generated_as_real:g}) of the images drawn for n real images unless named "
@@ -204,7 +227,9 @@ def markdown(rows: list[dict], iterations: int, note: str) -> str:
         images = f"{r.get('real_images', '')} / {r['synthetic_images']:.0f}"
         lines.append(f"| {r['object']} | `{r['regime']}` | {label} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
                      f"{r['mask_iou']:.3f} | {images} |")
-    return "\n".join([*lines, "", "Targets:", *target_lines([*rows, *mean_rows(rows)])]) + "\n"
+    ceilings_part = ["", "Noise ceilings (the test split rendered again with independent noise):",
+                     *ceiling_lines(rows, ceilings)] if ceilings else []
+    return "\n".join([*lines, "", "Targets:", *target_lines([*rows, *mean_rows(rows)]), *ceilings_part]) + "\n"
 
 
 def main() -> None:
@@ -229,6 +254,8 @@ def main() -> None:
                         help="settings of the pipeline rows (needs --tag): PipelineConfig fields (e.g. "
                              "nvs_views=0) or training keys of the final reconstruction (e.g. hull_masks=real)")
     parser.add_argument("--tag", default="", help="suffix of the pipeline rows' names with --pipeline-set")
+    parser.add_argument("--noise-ceilings", action="store_true",
+                        help="report each rendered capture's noise ceiling (renders its test split again, once)")
     parser.add_argument("--note", default="", help="a line for the Markdown (machine, date)")
     parser.add_argument("--collect-only", action="store_true", help="report what the finished runs recorded (no training, no evaluation)")
     parser.add_argument("--out", type=Path, default=RUNS)
@@ -237,9 +264,11 @@ def main() -> None:
     if bool(args.pipeline_set) != bool(args.tag):
         parser.error("--pipeline-set and --tag go together (the tag names the rows and folders of those settings)")
     pipeline_set = dict(item.split("=", 1) for item in args.pipeline_set)
-    rows, finals = [], {}
+    rows, finals, ceilings = [], {}, {}
     for spec in args.objects:
         data = resolve_object(spec, args.size, args.spp)
+        if args.noise_ceilings:
+            ceilings[data.name] = test_split_ceiling(data, args.out / "noise_reference")
         pipeline_variants = [(share, power) for share in args.real_shares for power in args.agreement_powers]
         jobs = [(regime, method, share, power) for regime in args.regimes for method in args.methods
                 for share, power in (pipeline_variants if method in ("+relight", "full")
@@ -263,8 +292,9 @@ def main() -> None:
             print(json.dumps(rows[-1]), flush=True)
     args.results.mkdir(parents=True, exist_ok=True)
     (args.results / "regimes.json").write_text(json.dumps({"iterations": args.iterations, "note": args.note,
-                                                           "rows": rows, "mean": mean_rows(rows)}, indent=2) + "\n")
-    text = markdown(rows, args.iterations, args.note)
+                                                           "rows": rows, "mean": mean_rows(rows),
+                                                           "noise_ceilings": ceilings}, indent=2) + "\n")
+    text = markdown(rows, args.iterations, args.note, ceilings)
     (args.results / "regimes.md").write_text(text)
     objects = [resolve_object(spec, args.size, args.spp) for spec in args.objects]
     save_regimes_grid(args.results / "regimes_grid.png", objects, finals, rows)

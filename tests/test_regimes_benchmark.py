@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 
 import pytest
@@ -49,6 +50,38 @@ def test_targets_are_judged_per_object_and_for_the_mean():
     table = regimes.markdown(rows, 1000, "test machine")
     assert "| a | `views=3,lights=3` | + novel views (full pipeline) | 17.50 | 0.5000 | 0.850 | 9 / 0 |" in table
     assert "n / (n + 9) of the images drawn" in table and table.splitlines()[0].endswith("test machine")
+
+
+def test_noise_ceilings_are_listed_for_rendered_captures_with_the_dense_rows_distance():
+    rows = [_row("a", regimes.THIRTY, "full", 24.0, 0.9), _row("a", "all", "dense", 25.5, 0.95),
+            _row("b", regimes.THIRTY, "full", 20.0, 0.9)]
+    table = regimes.markdown(rows, 1000, "", {"a": 27.5, "b": 26.0, "c": None})
+    assert table.endswith("- a: 27.50 dB (dense row 2.00 dB under it)\n- b: 26.00 dB\n")
+    assert "Noise ceilings" not in regimes.markdown(rows, 1000, "")
+
+
+def test_the_noise_ceiling_renders_a_second_test_split_once_and_only_for_a_synth_capture(tmp_path, monkeypatch):
+    from diamond_sss.data.analytic import make_capture
+    from diamond_sss.data.dataset import OLATDataset
+
+    data, references = tmp_path / "capture", tmp_path / "references"
+    make_capture(data, views=2, lights=2, size=16, split="test")
+    assert regimes.test_split_ceiling(data, references) is None  # no meta.json: nothing to render again
+    (data / "meta.json").write_text("{}")
+    rendered = []
+
+    def render(out):  # stands in for Mitsuba: the same test views under slightly moved lights
+        rendered.append(out)
+        make_capture(out, views=2, lights=2, size=16, split="test", light_offset=0.05)
+
+    monkeypatch.setattr(regimes, "noise_reference_config", lambda capture, out: out if capture == data else None)
+    monkeypatch.setattr(regimes, "synthesize", render)
+    first = regimes.test_split_ceiling(data, references)
+    second = regimes.test_split_ceiling(data, references)
+    assert rendered == [references / "capture"]  # rendered once, then reused
+    expected = regimes.noise_ceiling(OLATDataset(data, "test"), OLATDataset(references / "capture", "test"))
+    assert first == second == pytest.approx(expected["render_psnr"] + 10 * math.log10(2.0))
+    assert 10.0 < first < 80.0
 
 
 def test_recorded_reads_a_finished_pipeline_and_skips_an_unfinished_one(tmp_path):
