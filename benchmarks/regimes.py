@@ -33,6 +33,7 @@ from typing import Any
 
 from diamond_sss.cli.synth_commands import synth
 from diamond_sss.data.dataset import OLATDataset
+from diamond_sss.data.errors import DataError
 from diamond_sss.evaluation.evaluate import render_observation
 from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.noise import noise_ceiling
@@ -81,7 +82,10 @@ def test_split_ceiling(data: Path, references: Path) -> float | None:
         return None
     reference = references / data.name
     if not (reference / "transforms_test.json").is_file():
-        synthesize(noise_reference_config(data, reference))
+        try:
+            synthesize(noise_reference_config(data, reference))
+        except DataError as exc:
+            raise SystemExit(f"--noise-ceilings: {exc}") from exc
     return noise_ceiling(OLATDataset(data, "test"), OLATDataset(reference, "test"))["ceiling_psnr"]
 
 

@@ -68,6 +68,9 @@ def test_the_noise_ceiling_renders_a_second_test_split_once_and_only_for_a_synth
     make_capture(data, views=2, lights=2, size=16, split="test")
     assert regimes.test_split_ceiling(data, references) is None  # no meta.json: nothing to render again
     (data / "meta.json").write_text("{}")
+    with pytest.raises(SystemExit, match=r"--noise-ceilings: .*meta.json: not a `diamond-sss synth` meta file"):
+        regimes.test_split_ceiling(data, references)  # the benchmark stops, naming the file, before any render
+    assert not references.exists()
     rendered = []
 
     def render(out):  # stands in for Mitsuba: the same test views under slightly moved lights
