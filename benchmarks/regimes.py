@@ -18,8 +18,9 @@ outputs/benchmarks/objects. Metrics on the test split (novel views under novel l
 
 Runs go to --out (resumable: a second call with the same arguments only collects); regimes.json, regimes.md and
 regimes_grid.png go to --results. --noise-ceilings adds each rendered capture's noise ceiling (its test split
-rendered again with independent noise, once, into <out>/noise_reference; as `quality.py` does for the demo). The targets: at 9 images `full` beats `sss3dgs` by >= 2 dB PSNR and in mask
-IoU; at 30 images `full` is within 2 dB of `dense` (checked for every `full` variant).
+rendered again with independent noise, once, into <out>/noise_reference; as `quality.py` does for the demo). The
+targets: at 9 images `full` beats `sss3dgs` by >= 2 dB PSNR and in mask IoU; at 30 images `full` is within 2 dB of
+`dense` (checked for every `full` variant).
 """
 
 from __future__ import annotations
@@ -74,7 +75,7 @@ def resolve_object(spec: str, size: int, spp: int) -> Path:
     return folder
 
 
-def test_split_ceiling(data: Path, references: Path) -> float | None:
+def noise_ceiling_of(data: Path, references: Path) -> float | None:
     """The noise ceiling (dB) of ``data``'s test split when ``data`` is a `diamond-sss synth` capture (it has a
     ``meta.json``): the split rendered again with independent noise into ``references/<name>`` once (Mitsuba),
     then PSNR(first, second) + 3.01 dB (:func:`noise_ceiling`); ``None`` for any other capture."""
@@ -272,7 +273,7 @@ def main() -> None:
     for spec in args.objects:
         data = resolve_object(spec, args.size, args.spp)
         if args.noise_ceilings:
-            ceilings[data.name] = test_split_ceiling(data, args.out / "noise_reference")
+            ceilings[data.name] = noise_ceiling_of(data, args.out / "noise_reference")
         pipeline_variants = [(share, power) for share in args.real_shares for power in args.agreement_powers]
         jobs = [(regime, method, share, power) for regime in args.regimes for method in args.methods
                 for share, power in (pipeline_variants if method in ("+relight", "full")

@@ -66,10 +66,10 @@ def test_the_noise_ceiling_renders_a_second_test_split_once_and_only_for_a_synth
 
     data, references = tmp_path / "capture", tmp_path / "references"
     make_capture(data, views=2, lights=2, size=16, split="test")
-    assert regimes.test_split_ceiling(data, references) is None  # no meta.json: nothing to render again
+    assert regimes.noise_ceiling_of(data, references) is None  # no meta.json: nothing to render again
     (data / "meta.json").write_text("{}")
     with pytest.raises(SystemExit, match=r"--noise-ceilings: .*meta.json: not a `diamond-sss synth` meta file"):
-        regimes.test_split_ceiling(data, references)  # the benchmark stops, naming the file, before any render
+        regimes.noise_ceiling_of(data, references)  # the benchmark stops, naming the file, before any render
     assert not references.exists()
     rendered = []
 
@@ -79,8 +79,8 @@ def test_the_noise_ceiling_renders_a_second_test_split_once_and_only_for_a_synth
 
     monkeypatch.setattr(regimes, "noise_reference_config", lambda capture, out: out if capture == data else None)
     monkeypatch.setattr(regimes, "synthesize", render)
-    first = regimes.test_split_ceiling(data, references)
-    second = regimes.test_split_ceiling(data, references)
+    first = regimes.noise_ceiling_of(data, references)
+    second = regimes.noise_ceiling_of(data, references)
     assert rendered == [references / "capture"]  # rendered once, then reused
     expected = regimes.noise_ceiling(OLATDataset(data, "test"), OLATDataset(references / "capture", "test"))
     assert first == second == pytest.approx(expected["render_psnr"] + 10 * math.log10(2.0))
