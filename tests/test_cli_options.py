@@ -31,11 +31,11 @@ def test_run_reaches_every_pipeline_field_with_the_configs_defaults(tmp_path, ca
     assert captured_pipeline["config"] == PipelineConfig(augment=())
     main([*base, "--augment", "relight", "--prelim-iterations", "5", "--nvs-guidance", "2.5",
           "--min-silhouette-iou", "0.3", "--min-mask-fraction", "0.01", "--relight-samples", "2", "--device", "cuda",
-          "--set", "losses.lambda_dssim=0.3", "--iterations", "7", "--seed", "3"])
+          "--set", "losses.lambda_dssim=0.3", "--iterations", "7", "--keep-schedule", "--seed", "3"])
     assert captured_pipeline["config"] == PipelineConfig(
         augment=("relight",), prelim_iterations=5, nvs_guidance=2.5, min_silhouette_iou=0.3, min_mask_fraction=0.01,
         relight_samples=2, device="cuda")
-    assert captured_pipeline["overrides"] == {"losses.lambda_dssim": 0.3, "iterations": 7}
+    assert captured_pipeline["overrides"] == {"losses.lambda_dssim": 0.3, "schedule.iterations": 7}
     assert captured_pipeline["seed"] == 3
 
 

@@ -297,3 +297,24 @@ def test_the_novel_views_warp_with_the_geometry_given_or_else_the_preliminary_re
     assert nvs_geometry(PipelineConfig(nvs_geometry=str(prelim)), tmp_path / "unused").run == prelim
     with pytest.raises(ValueError, match="pipeline config 'nvs_geometry': geometry source .*missing"):
         checked_config(PipelineConfig(nvs_geometry=str(tmp_path / "missing")))
+
+
+def test_prelim_iterations_scale_the_final_reconstructions_schedule(setup, tmp_path, monkeypatch):
+    import diamond_sss.pipeline.run as pipeline_run
+    from diamond_sss.training.config import short_schedule
+    from diamond_sss.training.overrides import make_config
+
+    data, _, relight, _ = setup
+    seen = {}
+    monkeypatch.setattr(pipeline_run, "train_run", lambda data, out, **kwargs: seen.update(kwargs) or
+                        type("Result", (), {"steps": 0})())
+    cfg = PipelineConfig(augment=("relight",), relight_model=str(relight), prelim_iterations=400)
+    ctx, _ = pipeline_run.prepare_run(data, tmp_path, split="train", regime="views=2,lights=1", preset="diamond",
+                                      overrides={**short_schedule(1000), "device": "cpu"}, seed=3, cfg=cfg,
+                                      show_progress=False)
+    pipeline_run.prelim_stage(ctx)
+    prelim = make_config("diamond", overrides=seen["overrides"])
+    # every step-valued key scaled by 400 / 1000, also those short_schedule leaves at the preset's (image logs)
+    assert prelim == make_config("diamond", overrides={**short_schedule(400), "image_log_every": 200,
+                                                       "device": "cpu", "seed": 3})
+    assert (prelim.schedule.iterations, prelim.lr.decay_step, prelim.densify.refine_stop_iter) == (400, 280, 340)

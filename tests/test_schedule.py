@@ -10,7 +10,12 @@ from diamond_sss.cli.main import main
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.training.averaging import averaging_start
 from diamond_sss.training.config import scale_schedule, schedule_for, short_schedule
-from diamond_sss.training.overrides import load_run_config, make_config, scaled_run_schedule
+from diamond_sss.training.overrides import (
+    load_run_config,
+    make_config,
+    scaled_run_schedule,
+    short_run_overrides,
+)
 
 DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, the short-run model and decay (issue 17;
     # the light map 64 px since session 13, reused for 10 steps since session 14)
@@ -126,3 +131,69 @@ def test_train_iterations_scales_the_schedule_unless_kept(tmp_path, capsys, keep
         assert "densify.refine_start_iter 500->1" in " ".join(out.split())
         assert (config["densify_from_iter"], config["densify_until_iter"], config["checkpoint_every"]) == (1, 4, 1)
         assert (run / "checkpoints" / "latest.json").is_file()
+
+
+def test_short_run_overrides_are_the_benchmarks_settings_under_the_config_files(tmp_path):
+    """--short-run resolves to the configuration the demo and benchmarks train with (issue 17's dense settings from
+    3,000 steps on); a --config file's keys come after it."""
+    dense = short_run_overrides(3000, dense=True)
+    assert make_config("diamond", overrides=dense) == make_config("diamond", overrides=short_schedule(3000, dense=True))
+    assert (dense["schedule.batch_size"], dense["losses.photometric_error"], dense["schedule.average_last"]) == (
+        2, "rmse", 0.1)
+    assert (dense["lr.decay_step"], dense["densify.refine_stop_iter"]) == (2100, 2550)
+    final = short_run_overrides(1000, pipeline_final=True)
+    assert (final["schedule.batch_size"], final["losses.photometric_error"]) == (1, "rmse")
+    assert "schedule.average_last" not in final and "shading.sss_angular_inputs" not in final
+    best = tmp_path / "best.json"
+    best.write_text(json.dumps({"sss_lr": 0.002, "lr": {"decay_factor": 0.5}}))
+    tuned = short_run_overrides(1000, config_file=best)
+    assert "lr.sss" not in tuned and "lr.decay_factor" not in tuned and tuned["shading.sss_width"] == 64
+    resolved = make_config("diamond", overrides=tuned, config_file=best)
+    assert (resolved.lr.sss, resolved.lr.decay_factor, resolved.lr.decay_step) == (0.002, 0.5, 700)
+    best.write_text("[0.002]")
+    with pytest.raises(ValueError, match="best.json: expected a JSON object of config keys"):
+        short_run_overrides(1000, config_file=best)
+    best.write_text(json.dumps({"sss_lr": "fast"}))
+    with pytest.raises(ValueError, match="best.json: .*sss"):
+        short_run_overrides(1000, config_file=best)
+
+
+@pytest.mark.parametrize(("command", "regime"), [("train", "all"), ("train", "views=3,lights=3"),
+                                                 ("run", "views=3,lights=3")])
+def test_short_run_flag_trains_with_the_short_run_settings(tmp_path, monkeypatch, capsys, command, regime):
+    import dataclasses
+
+    import diamond_sss.pipeline.run as pipeline_run
+    import diamond_sss.training.run as training_run
+
+    seen = {}
+    monkeypatch.setattr(training_run, "train_run", lambda data, out, **kwargs: seen.update(kwargs) or
+                        dataclasses.make_dataclass("R", ["steps", "seconds", "num_gaussians", "final_loss"])(1, 0, 1, 0))
+    monkeypatch.setattr(pipeline_run, "run_pipeline", lambda data, out, **kwargs: seen.update(kwargs) or {})
+    base = [command, "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--regime", regime, "--quiet"]
+    main([*base, "--short-run", "--iterations", "2000", "--set", "sss_width=32"])
+    expected = short_run_overrides(2000, dense=regime == "all", pipeline_final=command == "run")
+    if command == "train":
+        assert seen["overrides"] == expected and seen["sets"] == ["sss_width=32"]
+    else:
+        assert seen["overrides"] == {**expected, "sss_width": 32}
+    assert "short-run settings for 2000 steps" in " ".join(capsys.readouterr().out.split())
+    main([*base, "--short-run"])
+    assert seen["overrides"]["schedule.iterations"] == 1000
+    with pytest.raises(SystemExit):
+        main([*base, "--short-run", "--keep-schedule", "--iterations", "10"])
+    assert "give one of them" in capsys.readouterr().err
+
+
+def test_pipeline_iterations_scale_the_schedule_unless_kept(tmp_path, monkeypatch):
+    import diamond_sss.pipeline.run as pipeline_run
+
+    seen = {}
+    monkeypatch.setattr(pipeline_run, "run_pipeline", lambda data, out, **kwargs: seen.update(kwargs) or {})
+    base = ["run", "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--quiet", "--iterations", "1000"]
+    main([*base, "--set", "densification_interval=20"])
+    scaled, _ = scaled_run_schedule("diamond", 1000, sets=["densification_interval=20"])
+    assert seen["overrides"] == {**scaled, "densification_interval": 20}
+    assert seen["overrides"]["densify.refine_start_iter"] == 50
+    main([*base, "--keep-schedule"])
+    assert seen["overrides"] == {"schedule.iterations": 1000}

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import typing
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
+from pathlib import Path
 from typing import Annotated, Any
 
 import tyro
@@ -42,3 +43,35 @@ def options_of(config: type, exclude: Collection[str] = (), include: Collection[
 def config_from(config: type, options: Any, **rest: Any) -> Any:
     """``config`` built from parsed :func:`options_of` ``options`` and the ``rest`` of its fields."""
     return config(**{f.name: getattr(options, f.name) for f in dataclasses.fields(options)}, **rest)
+
+
+def schedule_overrides(preset: str, iterations: int | None, *, keep_schedule: bool = False, short_run: bool = False,
+                       dense: bool = False, pipeline_final: bool = False, config_file: Path | None = None,
+                       sets: Sequence[str] = ()) -> tuple[dict[str, Any], str | None]:
+    """The config overrides (dotted keys) of ``--iterations``, ``--keep-schedule`` and ``--short-run``, and a line
+    saying what they changed (``None`` when nothing was asked).
+
+    ``short_run``: :func:`diamond_sss.training.overrides.short_run_overrides` for ``iterations`` steps (default
+    :data:`~diamond_sss.training.config.SHORT_SCHEDULE`'s 1000; a ``dense`` capture's or a ``pipeline_final``
+    reconstruction's settings with them); otherwise the step-valued keys of ``preset`` (+ ``config_file``) scaled to
+    ``iterations`` (:func:`~diamond_sss.training.overrides.scaled_run_schedule`; keys in ``sets`` keep their value),
+    or with ``keep_schedule`` only the step count changed.
+    """
+    from diamond_sss.training.config import SHORT_SCHEDULE
+    from diamond_sss.training.overrides import scaled_run_schedule, short_run_overrides
+
+    if short_run and keep_schedule:
+        raise ValueError("--keep-schedule keeps the preset's schedule and --short-run brings its own: give one of them")
+    if short_run:
+        steps = SHORT_SCHEDULE["iterations"] if iterations is None else iterations
+        settings = short_run_overrides(steps, dense=dense, pipeline_final=pipeline_final, config_file=config_file)
+        listed = ", ".join(f"{key}={value}" for key, value in settings.items() if key != "schedule.iterations")
+        return settings, f"short-run settings for {steps} steps (training.config.short_schedule): {listed}"
+    if iterations is None:
+        return {}, None
+    if keep_schedule:
+        return {"schedule.iterations": iterations}, None
+    scaled, changes = scaled_run_schedule(preset, iterations, config_file=config_file, sets=sets)
+    listed = ", ".join(f"{key} {old}->{new}" for key, (old, new) in changes.items())
+    return scaled, (f"schedule scaled to {iterations} steps (--keep-schedule keeps the preset's): "
+                    f"{listed or 'no change'}")

@@ -9,7 +9,7 @@ from typing import Annotated
 import tyro
 from rich.console import Console
 
-from diamond_sss.cli.options import SetArg, config_from, options_of
+from diamond_sss.cli.options import SetArg, config_from, options_of, schedule_overrides
 from diamond_sss.pipeline.config import PipelineConfig
 
 PipelineOptions = options_of(PipelineConfig, exclude=("augment",))
@@ -17,7 +17,8 @@ PipelineOptions = options_of(PipelineConfig, exclude=("augment",))
 
 
 def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lights=5%", preset: str = "diamond",
-        augment: str = "auto", iterations: int | None = None, set_: SetArg = [], seed: int = 0,  # noqa: B006
+        augment: str = "auto", iterations: int | None = None, keep_schedule: bool = False, short_run: bool = False,
+        set_: SetArg = [], seed: int = 0,  # noqa: B006
         json: bool = False, quiet: bool = False,
         pipeline: Annotated[PipelineOptions, tyro.conf.OmitArgPrefixes] = PipelineOptions()) -> None:  # noqa: B008
     """Diffusion-augmented sparse reconstruction (supplement Sec. C.4): prelim -> nvs -> relight -> final -> eval.
@@ -32,7 +33,14 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         regime: capture regime of the real images (e.g. views=5%,lights=5%).
         preset: reconstruction preset for the preliminary and final reconstructions.
         augment: auto (the stages whose model ships with the package) | none | nvs | relight | nvs,relight.
-        iterations: training steps of each reconstruction (default: the preset's).
+        iterations: training steps of each reconstruction (default: the preset's); the preset's step-valued keys
+            are scaled by iterations / the preset's iterations, as `diamond-sss train --iterations` does.
+        keep_schedule: with --iterations, keep the preset's step-valued keys as they are.
+        short_run: the settings measured for runs of 1,000 to 10,000 steps on 64-px captures, with which the
+            demo and benchmarks/regimes.py run the pipeline (training.config.short_schedule with the final
+            reconstruction's PIPELINE_FINAL_RUN), scaled to --iterations (default 1000); --set's keys come after
+            them. The benchmarks' preliminary reconstruction is not trained with these but is a
+            `diamond-sss train --preset sss3dgs --short-run` run on the same regime and seed, given as --prelim-run.
         seed: seed of the regime, reconstructions and diffusion noise.
         json: print the final metrics as JSON.
         quiet: no progress bars.
@@ -41,9 +49,11 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
     from diamond_sss.pipeline.run import parse_augment, run_pipeline
     from diamond_sss.training.overrides import parse_sets
 
-    overrides = parse_sets(set_)
-    if iterations is not None:
-        overrides["iterations"] = iterations
+    schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
+                                        pipeline_final=True, sets=set_)
+    if said:
+        Console(soft_wrap=True).print(said)
+    overrides = {**schedule, **parse_sets(set_)}
     cfg = config_from(PipelineConfig, pipeline, augment=parse_augment(augment))
     result = run_pipeline(data, out, split=split, regime=regime, preset=preset, overrides=overrides, seed=seed,
                           config=cfg, show_progress=not quiet)

@@ -9,11 +9,12 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from diamond_sss.cli.options import SetArg, given_overrides
+from diamond_sss.cli.options import SetArg, given_overrides, schedule_overrides
 
 
 def train(data: Path, out: Path, split: str = "train", regime: str = "all", preset: str = "diamond",
-          iterations: int | None = None, keep_schedule: bool = False, config: Path | None = None,
+          iterations: int | None = None, keep_schedule: bool = False, short_run: bool = False,
+          config: Path | None = None,
           set_: SetArg = [], seed: int | None = None, resume: bool = False,  # noqa: B006
           device: str | None = None, quiet: bool = False) -> None:
     """Reconstruct a relightable translucent object from an OLAT data set (SSS-3DGS backbone).
@@ -28,6 +29,9 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
             start, stop and interval, opacity reset, learning rate schedule, checkpoint and log intervals)
             are scaled by iterations / the preset's iterations.
         keep_schedule: with --iterations, keep the preset's step-valued keys as they are.
+        short_run: the settings measured for runs of 1,000 to 10,000 steps on 64-px captures, with which the
+            demo and the benchmarks train (training.config.short_schedule; with --regime all a dense capture's),
+            their schedule scaled to --iterations (default 1000); --config's keys and --set's come after them.
         config: JSON file of config keys (e.g. the best configuration written by `diamond-sss tune`).
         seed: seed of the regime selection, initialisation and every random draw (schedule.seed; default:
             --config's, else the preset's).
@@ -35,19 +39,14 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
         device: auto | cpu | cuda (runtime.device; default: --config's, else the preset's).
         quiet: no progress bar.
     """
-    from diamond_sss.training.overrides import scaled_run_schedule
     from diamond_sss.training.run import train_run
 
     console = Console(soft_wrap=True)
-    overrides = given_overrides(seed=seed, device=device)
-    if iterations is not None and keep_schedule:
-        overrides["iterations"] = iterations
-    elif iterations is not None:
-        scaled, changes = scaled_run_schedule(preset, iterations, config_file=config, sets=set_)
-        overrides.update(scaled)
-        listed = ", ".join(f"{key} {old}->{new}" for key, (old, new) in changes.items())
-        console.print(f"schedule scaled to {iterations} steps (--keep-schedule keeps the preset's): "
-                      f"{listed or 'no change'}")
+    schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
+                                        dense=regime == "all", config_file=config, sets=set_)
+    if said:
+        console.print(said)
+    overrides = {**schedule, **given_overrides(seed=seed, device=device)}
     result = train_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides,
                        config_file=config, sets=set_, resume=resume, show_progress=not quiet)
     console.print(f"trained {result.steps} steps in {result.seconds:.1f} s, {result.num_gaussians} Gaussians, "

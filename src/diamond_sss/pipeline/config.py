@@ -15,8 +15,8 @@ class PipelineConfig:
     """Settings of :func:`~diamond_sss.pipeline.run.run_pipeline` besides the reconstruction's configuration."""
 
     augment: tuple[str, ...] = described(AUGMENTS, "diffusion stages to run: a subset of nvs, relight")
-    prelim_iterations: int | None = described(None, "training steps of the preliminary reconstruction "
-                                                    "(default: the final reconstruction's)")
+    prelim_iterations: int | None = described(None, "training steps of the preliminary reconstruction, the final "
+                                                    "one's schedule scaled to them (default: the final one's)")
     prelim_run: str | None = described(None, "a finished reconstruction of the same real images (a `train` run "
                                              "folder with this regime and seed) reused as the preliminary one")
     rounds: int = described(1, "rounds of the pipeline: each round after the first takes the previous round's "

@@ -3,8 +3,9 @@
 Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
 
 1. ``prelim``   a reconstruction on the real images of the regime (geometry for conditioning, sanity checks),
-                ``prelim_iterations`` steps (default: the final reconstruction's), or ``prelim_run``, a finished
-                reconstruction of the same real images, reused without retraining;
+                ``prelim_iterations`` steps (the final reconstruction's schedule scaled to them; default: the
+                final reconstruction's), or ``prelim_run``, a finished reconstruction of the same real images,
+                reused without retraining;
 2. ``nvs``      novel views: for each real light, the lattice views the regime left out (the ``nvs_views``
                 farthest-point-spread ones when capped) generated from the nearest real view under that light;
 3. ``relight``  every real and generated view relit to the lattice lights it lacks (the ``relight_lights``
@@ -47,7 +48,7 @@ from diamond_sss.pipeline.agreement import agreement_factors, render_errors, ren
 from diamond_sss.pipeline.capture import GeneratedImage, check_on_lattice, write_capture
 from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
 from diamond_sss.training.config import TrainConfig
-from diamond_sss.training.overrides import make_config
+from diamond_sss.training.overrides import make_config, rescheduled
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.trainer import ImageSource
@@ -328,8 +329,7 @@ def prelim_stage(ctx: PipelineContext) -> dict:
         return {"real_images": len(ctx.selection.observations), "reused": str(ctx.prelim_dir)}
     prelim_overrides = dict(ctx.overrides)
     if ctx.cfg.prelim_iterations is not None:
-        prelim_overrides.update(iterations=ctx.cfg.prelim_iterations,
-                                position_lr_max_steps=ctx.cfg.prelim_iterations)
+        prelim_overrides.update(rescheduled(ctx.train_cfg, ctx.cfg.prelim_iterations))
     result = train_run(ctx.data, ctx.prelim_dir, split=ctx.split, regime=ctx.regime, preset=ctx.preset,
                        overrides=prelim_overrides, show_progress=ctx.show_progress, resume=True)
     return {"real_images": len(ctx.selection.observations), "steps": result.steps}

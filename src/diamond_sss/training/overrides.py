@@ -25,6 +25,7 @@ from diamond_sss.training.config import (
     canonical_key,
     field_types,
     schedule_for,
+    short_schedule,
 )
 from diamond_sss.utils.io import read_json
 
@@ -104,6 +105,21 @@ def with_values(config: TrainConfig, values: Mapping[str, Any]) -> TrainConfig:
                                           for group, changed in groups.items()})
 
 
+def config_file_values(config_file: Path) -> dict[str, Any]:
+    """Dotted key -> checked value of the JSON object of config keys in ``config_file`` (``--config``); errors
+    name the file."""
+    path = Path(config_file)
+    if not path.is_file():
+        raise ValueError(f"config file not found: {path}")
+    loaded = read_json(path)
+    try:
+        if isinstance(loaded, dict):
+            return checked_values(loaded)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from exc
+    raise ValueError(f"{path}: expected a JSON object of config keys")
+
+
 def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = None,
                 config_file: Path | None = None, sets: Sequence[str] = ()) -> TrainConfig:
     """Resolve a configuration: preset, then ``config_file`` (JSON object), then ``overrides``, then ``sets``.
@@ -112,18 +128,7 @@ def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = N
     """
     if preset not in PRESETS:
         raise ValueError(f"unknown preset '{preset}'; presets: {sorted(PRESETS)}")
-    values: dict[str, Any] = {}
-    if config_file is not None:
-        path = Path(config_file)
-        if not path.is_file():
-            raise ValueError(f"config file not found: {path}")
-        loaded = read_json(path)
-        if not isinstance(loaded, dict):
-            raise ValueError(f"{path}: expected a JSON object of config keys")
-        try:
-            values.update(checked_values(loaded))
-        except ValueError as exc:
-            raise ValueError(f"{path}: {exc}") from exc
+    values = config_file_values(config_file) if config_file is not None else {}
     values.update(checked_values(overrides or {}))
     values.update(checked_values(parse_sets(sets)))
     config = with_values(PRESETS[preset], values)
@@ -175,6 +180,12 @@ def describe_config(preset: str = "diamond") -> list[tuple[str, str, Any, str]]:
             for key, f in FIELDS.items()]
 
 
+def rescheduled(config: TrainConfig, iterations: int) -> dict[str, Any]:
+    """Overrides (dotted keys) that make ``config`` a run of ``iterations`` steps: its step-valued keys scaled by
+    ``iterations / config.schedule.iterations`` (:func:`~diamond_sss.training.config.schedule_for`)."""
+    return schedule_for({key: config.get(key) for key in FIELDS}, iterations)
+
+
 def scaled_run_schedule(preset: str, iterations: int, config_file: Path | None = None,
                         sets: Sequence[str] = ()) -> tuple[dict[str, Any], dict[str, tuple[Any, Any]]]:
     """Overrides (dotted keys) that scale the schedule of ``preset`` (+ ``config_file``) to ``iterations``
@@ -183,10 +194,20 @@ def scaled_run_schedule(preset: str, iterations: int, config_file: Path | None =
     config = make_config(preset, config_file=config_file)
     base = {key: config.get(key) for key in FIELDS}
     fixed = {canonical_key(key) for key in parse_sets(sets)}
-    scaled = {key: value for key, value in schedule_for(base, iterations).items() if key not in fixed}
+    scaled = {key: value for key, value in rescheduled(config, iterations).items() if key not in fixed}
     changes = {key: (base[key], value) for key, value in scaled.items()
                if key != "schedule.iterations" and value != base[key]}
     return scaled, changes
+
+
+def short_run_overrides(iterations: int, *, dense: bool = False, pipeline_final: bool = False,
+                        config_file: Path | None = None) -> dict[str, Any]:
+    """:func:`~diamond_sss.training.config.short_schedule` (the settings measured for runs of 1,000 to 10,000 steps
+    on 64-px captures: the demo's and the benchmarks') as dotted overrides, less the keys that ``config_file``
+    sets, so that the file's values come after the short-run settings (and ``--set``'s after both)."""
+    given = set(config_file_values(config_file)) if config_file is not None else set()
+    settings = checked_values(short_schedule(iterations, dense=dense, pipeline_final=pipeline_final))
+    return {key: value for key, value in settings.items() if key not in given}
 
 
 def load_run_config(run: Path) -> TrainConfig:
