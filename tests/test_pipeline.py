@@ -249,7 +249,11 @@ def test_rounds_reuse_each_final_reconstruction_as_the_next_preliminary_one(setu
     again = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
     assert again == result  # both rounds resume from their records
     for bad, message in ((replace(cfg, rounds=0), "'rounds' must be an integer >= 1, got 0"),
-                         (replace(cfg, augment=()), "'rounds' > 1 needs a diffusion stage")):
+                         (replace(cfg, augment=()), "'rounds' > 1 needs a diffusion stage"),
+                         (replace(cfg, prelim_iterations=0),
+                          r"'prelim_iterations' \(--prelim-iterations\) must be a positive number of training steps"),
+                         (replace(cfg, nvs_views=-1), r"'nvs_views' \(--nvs-views\) must be an integer >= 0"),
+                         (replace(cfg, relight_samples=0), "'relight_samples' .* must be an integer >= 1, got 0")):
         with pytest.raises(ValueError, match=message):
             run_pipeline(data, tmp_path / "bad", config=bad)
 
@@ -318,3 +322,32 @@ def test_prelim_iterations_scale_the_final_reconstructions_schedule(setup, tmp_p
     assert prelim == make_config("diamond", overrides={**short_schedule(400), "image_log_every": 200,
                                                        "device": "cpu", "seed": 3})
     assert (prelim.schedule.iterations, prelim.lr.decay_step, prelim.densify.refine_stop_iter) == (400, 280, 340)
+
+
+def test_the_preliminary_reconstruction_takes_its_own_preset_and_overrides(setup, tmp_path, monkeypatch):
+    import diamond_sss.pipeline.run as pipeline_run
+    from diamond_sss.training.config import short_schedule
+    from diamond_sss.training.overrides import make_config
+
+    data, _, relight, _ = setup
+    seen = {}
+    monkeypatch.setattr(pipeline_run, "train_run", lambda data, out, **kwargs: seen.update(kwargs) or
+                        type("Result", (), {"steps": 0})())
+    final = {**short_schedule(1000, pipeline_final=True), "device": "cpu"}
+    prelim = {**short_schedule(1000), "device": "cpu"}
+    cfg = PipelineConfig(augment=("relight",), relight_model=str(relight), prelim_preset="sss3dgs",
+                         prelim_iterations=500)
+    ctx, inputs = pipeline_run.prepare_run(data, tmp_path, split="train", regime="views=2,lights=1", preset="diamond",
+                                           overrides=final, prelim_overrides=prelim, seed=3, cfg=cfg,
+                                           show_progress=False)
+    pipeline_run.prelim_stage(ctx)
+    assert seen["preset"] == "sss3dgs" and inputs["prelim_overrides"] == {**prelim, "seed": 3}
+    trained = make_config("sss3dgs", overrides=seen["overrides"])
+    assert trained == make_config("sss3dgs", overrides={**short_schedule(500), "image_log_every": 250,
+                                                        "device": "cpu", "seed": 3})
+    assert trained.losses.photometric_error == "l1" and ctx.train_cfg.losses.photometric_error == "rmse"
+    with pytest.raises(ValueError, match="unknown preset"):
+        pipeline_run.prepare_run(data, tmp_path / "bad", split="train", regime="views=2,lights=1", preset="diamond",
+                                 overrides=final, prelim_overrides=None, seed=3,
+                                 cfg=PipelineConfig(augment=("relight",), relight_model=str(relight),
+                                                    prelim_preset="sss4dgs"), show_progress=False)

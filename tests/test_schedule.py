@@ -177,12 +177,20 @@ def test_short_run_flag_trains_with_the_short_run_settings(tmp_path, monkeypatch
         assert seen["overrides"] == expected and seen["sets"] == ["sss_width=32"]
     else:
         assert seen["overrides"] == {**expected, "sss_width": 32}
+        assert seen["prelim_overrides"] == {**short_run_overrides(2000), "sss_width": 32}
+        assert seen["config"].prelim_preset == "sss3dgs"  # the benchmarks' preliminary reconstruction
+        main([*base, "--short-run", "--prelim-preset", "diamond"])
+        assert seen["config"].prelim_preset == "diamond"
     assert "short-run settings for 2000 steps" in " ".join(capsys.readouterr().out.split())
     main([*base, "--short-run"])
     assert seen["overrides"]["schedule.iterations"] == 1000
     with pytest.raises(SystemExit):
         main([*base, "--short-run", "--keep-schedule", "--iterations", "10"])
     assert "give one of them" in capsys.readouterr().err
+    for steps in ("0", "-5"):
+        with pytest.raises(SystemExit):
+            main([*base, "--short-run", "--iterations", steps])
+        assert f"--iterations must be a positive number of training steps, got {steps}" in capsys.readouterr().err
 
 
 def test_pipeline_iterations_scale_the_schedule_unless_kept(tmp_path, monkeypatch):

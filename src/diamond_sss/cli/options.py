@@ -60,6 +60,8 @@ def schedule_overrides(preset: str, iterations: int | None, *, keep_schedule: bo
     from diamond_sss.training.config import SHORT_SCHEDULE
     from diamond_sss.training.overrides import scaled_run_schedule, short_run_overrides
 
+    if iterations is not None and iterations <= 0:
+        raise ValueError(f"--iterations must be a positive number of training steps, got {iterations}")
     if short_run and keep_schedule:
         raise ValueError("--keep-schedule keeps the preset's schedule and --short-run brings its own: give one of them")
     if short_run:

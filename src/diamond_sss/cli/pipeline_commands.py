@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json as json_module
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -10,7 +11,7 @@ import tyro
 from rich.console import Console
 
 from diamond_sss.cli.options import SetArg, config_from, options_of, schedule_overrides
-from diamond_sss.pipeline.config import PipelineConfig
+from diamond_sss.pipeline.config import SHORT_RUN_PRELIM_PRESET, PipelineConfig
 
 PipelineOptions = options_of(PipelineConfig, exclude=("augment",))
 """Every :class:`PipelineConfig` field but ``augment`` (given as text: ``--augment auto``), as ``--flag``."""
@@ -31,16 +32,18 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         out: pipeline folder.
         split: training split.
         regime: capture regime of the real images (e.g. views=5%,lights=5%).
-        preset: reconstruction preset for the preliminary and final reconstructions.
+        preset: reconstruction preset of the final reconstruction (and of the preliminary one, unless
+            --prelim-preset or --short-run says otherwise).
         augment: auto (the stages whose model ships with the package) | none | nvs | relight | nvs,relight.
         iterations: training steps of each reconstruction (default: the preset's); the preset's step-valued keys
             are scaled by iterations / the preset's iterations, as `diamond-sss train --iterations` does.
         keep_schedule: with --iterations, keep the preset's step-valued keys as they are.
         short_run: the settings measured for runs of 1,000 to 10,000 steps on 64-px captures, with which the
-            demo and benchmarks/regimes.py run the pipeline (training.config.short_schedule with the final
-            reconstruction's PIPELINE_FINAL_RUN), scaled to --iterations (default 1000); --set's keys come after
-            them. The benchmarks' preliminary reconstruction is not trained with these but is a
-            `diamond-sss train --preset sss3dgs --short-run` run on the same regime and seed, given as --prelim-run.
+            demo and benchmarks/regimes.py run the pipeline (training.config.short_schedule), scaled to --iterations
+            (default 1000): the final reconstruction with PIPELINE_FINAL_RUN, the preliminary one as theirs, the
+            sss3dgs preset (unless --prelim-preset) with Eq. A.1's L1; --set's keys come after them. The
+            benchmarks reuse their `diamond-sss train --preset sss3dgs --short-run` run of the same regime and
+            seed (the SSS-3DGS row) as the preliminary one: give it as --prelim-run to do the same.
         seed: seed of the regime, reconstructions and diffusion noise.
         json: print the final metrics as JSON.
         quiet: no progress bars.
@@ -55,8 +58,13 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         Console(soft_wrap=True).print(said)
     overrides = {**schedule, **parse_sets(set_)}
     cfg = config_from(PipelineConfig, pipeline, augment=parse_augment(augment))
-    result = run_pipeline(data, out, split=split, regime=regime, preset=preset, overrides=overrides, seed=seed,
-                          config=cfg, show_progress=not quiet)
+    prelim_overrides = None
+    if short_run:
+        cfg = replace(cfg, prelim_preset=cfg.prelim_preset or SHORT_RUN_PRELIM_PRESET)
+        prelim_schedule, _ = schedule_overrides(cfg.prelim_preset, iterations, short_run=True)
+        prelim_overrides = {**prelim_schedule, **parse_sets(set_)}
+    result = run_pipeline(data, out, split=split, regime=regime, preset=preset, overrides=overrides,
+                          prelim_overrides=prelim_overrides, seed=seed, config=cfg, show_progress=not quiet)
     if json:
         print(json_module.dumps(result, indent=2))
     else:

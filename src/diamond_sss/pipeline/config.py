@@ -9,6 +9,10 @@ from diamond_sss.utils.fields import described
 AUGMENTS = ("nvs", "relight")
 """The diffusion stages, in the order they run."""
 
+SHORT_RUN_PRELIM_PRESET = "sss3dgs"
+"""Preset of a short run's preliminary reconstruction (``diamond-sss run --short-run``), as the demo and
+``benchmarks/regimes.py`` train it: SSS-3DGS on the regime's real images, whose run is also their baseline row."""
+
 
 @dataclass
 class PipelineConfig:
@@ -17,6 +21,8 @@ class PipelineConfig:
     augment: tuple[str, ...] = described(AUGMENTS, "diffusion stages to run: a subset of nvs, relight")
     prelim_iterations: int | None = described(None, "training steps of the preliminary reconstruction, the final "
                                                     "one's schedule scaled to them (default: the final one's)")
+    prelim_preset: str | None = described(None, "preset of the preliminary reconstruction (default: the final "
+                                                "one's)")
     prelim_run: str | None = described(None, "a finished reconstruction of the same real images (a `train` run "
                                              "folder with this regime and seed) reused as the preliminary one")
     rounds: int = described(1, "rounds of the pipeline: each round after the first takes the previous round's "

@@ -2,10 +2,10 @@
 
 Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
 
-1. ``prelim``   a reconstruction on the real images of the regime (geometry for conditioning, sanity checks),
-                ``prelim_iterations`` steps (the final reconstruction's schedule scaled to them; default: the
-                final reconstruction's), or ``prelim_run``, a finished reconstruction of the same real images,
-                reused without retraining;
+1. ``prelim``   a reconstruction on the real images of the regime (geometry for conditioning, sanity checks):
+                preset ``prelim_preset`` with ``prelim_overrides`` (default: the final reconstruction's), for
+                ``prelim_iterations`` steps (its schedule scaled to them; default: its own), or ``prelim_run``, a
+                finished reconstruction of the same real images, reused without retraining;
 2. ``nvs``      novel views: for each real light, the lattice views the regime left out (the ``nvs_views``
                 farthest-point-spread ones when capped) generated from the nearest real view under that light;
 3. ``relight``  every real and generated view relit to the lattice lights it lacks (the ``relight_lights``
@@ -219,6 +219,8 @@ class PipelineContext:
     regime: str
     preset: str
     overrides: dict[str, Any]
+    prelim_preset: str
+    prelim_overrides: dict[str, Any]
     seed: int
     cfg: PipelineConfig
     train_cfg: TrainConfig
@@ -245,6 +247,14 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
     if cfg.rounds > 1 and not cfg.augment:
         raise ValueError("pipeline config 'rounds' > 1 needs a diffusion stage (--augment): without generated images "
                          "every round is the same reconstruction")
+    if cfg.prelim_iterations is not None and cfg.prelim_iterations <= 0:
+        raise ValueError(f"pipeline config 'prelim_iterations' (--prelim-iterations) must be a positive number of "
+                         f"training steps, got {cfg.prelim_iterations}")
+    for key, least in (("nvs_views", 0), ("relight_lights", 0), ("nvs_steps", 1), ("relight_steps", 1),
+                       ("relight_samples", 1)):
+        if getattr(cfg, key) < least:
+            raise ValueError(f"pipeline config '{key}' (--{key.replace('_', '-')}) must be an integer >= {least}, "
+                             f"got {getattr(cfg, key)}")
     if not (math.isfinite(cfg.agreement_power) and cfg.agreement_power >= 0.0):
         raise ValueError(f"pipeline config 'agreement_power' must be a finite number >= 0, got {cfg.agreement_power}")
     if cfg.nvs_geometry is not None:
@@ -259,12 +269,16 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
 
 
 def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, overrides: dict[str, Any] | None,
-                seed: int, cfg: PipelineConfig, show_progress: bool) -> tuple[PipelineContext, dict]:
+                seed: int, cfg: PipelineConfig, prelim_overrides: dict[str, Any] | None = None,
+                show_progress: bool) -> tuple[PipelineContext, dict]:
     """The shared state of a pipeline run into ``out`` (created) and its inputs as ``pipeline.json`` records them."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     overrides = {**(overrides or {}), "seed": seed}
     train_cfg = make_config(preset, overrides=overrides)
+    prelim_preset = cfg.prelim_preset or preset
+    prelim_overrides = overrides if prelim_overrides is None else {**prelim_overrides, "seed": seed}
+    make_config(prelim_preset, overrides=prelim_overrides)  # a bad preset or key fails here, before any stage
     real = OLATDataset(data, split, downscale=train_cfg.runtime.downscale)
     selection = select_regime(real, regime, seed)
     model_hashes = {}
@@ -278,7 +292,8 @@ def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, 
         model_hashes["relight"] = _model_hash("relight", cfg.relight_model or shipped_model_path())
     inputs = {
         "data": str(Path(data).resolve()), "split": split, "regime": regime, "preset": preset, "seed": seed,
-        "overrides": overrides, "pipeline": asdict(cfg) | {"augment": list(cfg.augment)},
+        "overrides": overrides, "prelim_overrides": prelim_overrides,
+        "pipeline": asdict(cfg) | {"augment": list(cfg.augment)},
         "model_hashes": model_hashes, "data_hash": sha256_file(real.json_path),
     }
     prelim_dir = out / "prelim"
@@ -286,7 +301,8 @@ def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, 
         prelim_dir = check_prelim_run(Path(cfg.prelim_run), data, split, selection.observations)
         inputs["prelim_model_hash"] = sha256_file(prelim_dir / "model.safetensors")
     center = real.bounds.center
-    ctx = PipelineContext(data, out, split, regime, preset, overrides, seed, cfg, train_cfg, real, selection,
+    ctx = PipelineContext(data, out, split, regime, preset, overrides, prelim_preset, prelim_overrides, seed, cfg,
+                          train_cfg, real, selection,
                           prelim_dir, directions_from(real.camera_centers, center),
                           directions_from(real.light_positions, center), show_progress)
     return ctx, inputs
@@ -327,10 +343,11 @@ def prelim_stage(ctx: PipelineContext) -> dict:
     """The preliminary reconstruction on the regime's real images (or the reused ``prelim_run``)."""
     if ctx.cfg.prelim_run:
         return {"real_images": len(ctx.selection.observations), "reused": str(ctx.prelim_dir)}
-    prelim_overrides = dict(ctx.overrides)
+    prelim_overrides = dict(ctx.prelim_overrides)
     if ctx.cfg.prelim_iterations is not None:
-        prelim_overrides.update(rescheduled(ctx.train_cfg, ctx.cfg.prelim_iterations))
-    result = train_run(ctx.data, ctx.prelim_dir, split=ctx.split, regime=ctx.regime, preset=ctx.preset,
+        prelim_cfg = make_config(ctx.prelim_preset, overrides=prelim_overrides)
+        prelim_overrides.update(rescheduled(prelim_cfg, ctx.cfg.prelim_iterations))
+    result = train_run(ctx.data, ctx.prelim_dir, split=ctx.split, regime=ctx.regime, preset=ctx.prelim_preset,
                        overrides=prelim_overrides, show_progress=ctx.show_progress, resume=True)
     return {"real_images": len(ctx.selection.observations), "steps": result.steps}
 
@@ -464,10 +481,14 @@ def eval_stage(ctx: PipelineContext) -> dict:
 
 
 def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "views=5%,lights=5%",
-                 preset: str = "diamond", overrides: dict[str, Any] | None = None, seed: int = 0,
+                 preset: str = "diamond", overrides: dict[str, Any] | None = None,
+                 prelim_overrides: dict[str, Any] | None = None, seed: int = 0,
                  config: PipelineConfig | None = None, show_progress: bool = True,
                  move_changed_run: bool = False) -> dict:
     """Run the stages above into ``out``; returns the final evaluation (plus counts) as a dict.
+
+    ``overrides``: config overrides of the final reconstruction; ``prelim_overrides``: of the preliminary one
+    (default: the same as the final's).
 
     A previous run in ``out`` with other inputs is an error, or with ``move_changed_run`` is moved aside
     (:func:`move_aside_if_changed`) and the run starts afresh. With ``rounds`` = R > 1, rounds 1..R-1 run into
@@ -477,12 +498,13 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     round_psnr = []
     for k in range(1, cfg.rounds):
         result = run_pipeline(data, Path(out) / f"round{k}", split=split, regime=regime, preset=preset,
-                              overrides=overrides, seed=seed, config=replace(cfg, rounds=1),
+                              overrides=overrides, prelim_overrides=prelim_overrides, seed=seed,
+                              config=replace(cfg, rounds=1),
                               show_progress=show_progress, move_changed_run=move_changed_run)
         round_psnr.append(result.get("psnr"))
         cfg = replace(cfg, prelim_run=str(Path(out) / f"round{k}" / "final"))
-    ctx, inputs = prepare_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides, seed=seed,
-                              cfg=cfg, show_progress=show_progress)
+    ctx, inputs = prepare_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides,
+                              prelim_overrides=prelim_overrides, seed=seed, cfg=cfg, show_progress=show_progress)
     if move_changed_run and (moved := move_aside_if_changed(ctx.out, inputs)) is not None:
         print(f"{ctx.out}: the inputs changed (models, data or settings); the previous run was moved to {moved}")
         ctx.out.mkdir(parents=True, exist_ok=True)
