@@ -173,15 +173,17 @@ def test_short_run_flag_trains_with_the_short_run_settings(tmp_path, monkeypatch
     base = [command, "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--regime", regime, "--quiet"]
     main([*base, "--short-run", "--iterations", "2000", "--set", "sss_width=32"])
     expected = short_run_overrides(2000, dense=regime == "all", pipeline_final=command == "run")
+    said = " ".join(capsys.readouterr().out.split())
+    assert "short-run settings for 2000 steps" in said
     if command == "train":
         assert seen["overrides"] == expected and seen["sets"] == ["sss_width=32"]
     else:
         assert seen["overrides"] == {**expected, "sss_width": 32}
         assert seen["prelim_overrides"] == {**short_run_overrides(2000), "sss_width": 32}
         assert seen["config"].prelim_preset == "sss3dgs"  # the benchmarks' preliminary reconstruction
+        assert "preliminary reconstruction (sss3dgs): the same settings without losses.photometric_error=rmse" in said
         main([*base, "--short-run", "--prelim-preset", "diamond"])
         assert seen["config"].prelim_preset == "diamond"
-    assert "short-run settings for 2000 steps" in " ".join(capsys.readouterr().out.split())
     main([*base, "--short-run"])
     assert seen["overrides"]["schedule.iterations"] == 1000
     with pytest.raises(SystemExit):

@@ -54,8 +54,6 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
 
     schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
                                         pipeline_final=True, sets=set_)
-    if said:
-        Console(soft_wrap=True).print(said)
     overrides = {**schedule, **parse_sets(set_)}
     cfg = config_from(PipelineConfig, pipeline, augment=parse_augment(augment))
     prelim_overrides = None
@@ -63,6 +61,12 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         cfg = replace(cfg, prelim_preset=cfg.prelim_preset or SHORT_RUN_PRELIM_PRESET)
         prelim_schedule, _ = schedule_overrides(cfg.prelim_preset, iterations, short_run=True)
         prelim_overrides = {**prelim_schedule, **parse_sets(set_)}
+        final_only = ", ".join(f"{key}={schedule[key]}" for key in schedule if key not in prelim_schedule)
+        said = (f"final reconstruction ({preset}): {said}\npreliminary reconstruction ({cfg.prelim_preset}): the same "
+                f"settings" + (f" without {final_only}" if final_only else "")
+                + (" (not trained: --prelim-run gives it)" if cfg.prelim_run else ""))
+    if said:
+        Console(soft_wrap=True).print(said)
     result = run_pipeline(data, out, split=split, regime=regime, preset=preset, overrides=overrides,
                           prelim_overrides=prelim_overrides, seed=seed, config=cfg, show_progress=not quiet)
     if json:
