@@ -22,7 +22,7 @@ class PipelineConfig:
     prelim_iterations: int | None = described(None, "training steps of the preliminary reconstruction, the final "
                                                     "one's schedule scaled to them (default: the final one's)")
     prelim_preset: str | None = described(None, "preset of the preliminary reconstruction (default: the final "
-                                                "one's)")
+                                                "one's; with `run --short-run`, sss3dgs)")
     prelim_run: str | None = described(None, "a finished reconstruction of the same real images (a `train` run "
                                              "folder with this regime and seed) reused as the preliminary one")
     rounds: int = described(1, "rounds of the pipeline: each round after the first takes the previous round's "
