@@ -19,8 +19,8 @@ class PipelineConfig:
     """Settings of :func:`~diamond_sss.pipeline.run.run_pipeline` besides the reconstruction's configuration."""
 
     augment: tuple[str, ...] = described(AUGMENTS, "diffusion stages to run: a subset of nvs, relight")
-    prelim_iterations: int | None = described(None, "training steps of the preliminary reconstruction, the final "
-                                                    "one's schedule scaled to them (default: the final one's)")
+    prelim_iterations: int | None = described(None, "training steps of the preliminary reconstruction, its "
+                                                    "schedule scaled to them (default: its settings' steps)")
     prelim_preset: str | None = described(None, "preset of the preliminary reconstruction (default: the final "
                                                 "one's; with `run --short-run`, sss3dgs)")
     prelim_run: str | None = described(None, "a finished reconstruction of the same real images (a `train` run "
