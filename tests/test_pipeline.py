@@ -20,6 +20,7 @@ from diamond_sss.pipeline.agreement import agreement_factors, render_errors
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
 from diamond_sss.pipeline.run import (
     PipelineConfig,
+    changed_inputs,
     move_aside_if_changed,
     real_copies,
     run_pipeline,
@@ -151,7 +152,7 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
     assert len(synthetic) == 6 and synthetic.num_views == 6
     again = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
     assert again["psnr"] == result["psnr"]
-    with pytest.raises(ValueError, match="other inputs"):
+    with pytest.raises(ValueError, match=r"other inputs \(regime: 'views=2,lights=1' -> 'views=3,lights=1'\);"):
         run_pipeline(data, tmp_path, regime="views=3,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
 
 
@@ -205,6 +206,14 @@ def test_a_run_with_other_inputs_is_moved_aside_not_deleted(tmp_path):
     (out / "pipeline.json").write_text('{"inputs": ')
     with pytest.raises(ValueError, match=r"diamond/pipeline.json is not valid JSON"):
         move_aside_if_changed(out, {"model": "b"})
+
+
+def test_changed_inputs_name_each_differing_key():
+    recorded = {"regime": "views=3", "pipeline": {"rounds": 1, "nvs_steps": 25}, "seed": 0}
+    given = {"regime": "views=3", "pipeline": {"rounds": 2, "nvs_steps": 25, "prelim_preset": None}, "seed": 0}
+    assert changed_inputs(recorded, given) == ["pipeline.prelim_preset: missing -> None", "pipeline.rounds: 1 -> 2"]
+    assert changed_inputs(recorded, recorded) == []
+    assert changed_inputs(None, {"seed": 0}) == ["inputs: None -> {'seed': 0}"]
 
 
 def test_relighting_targets_the_lights_each_view_lacks(setup, tmp_path):

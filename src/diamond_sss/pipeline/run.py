@@ -79,6 +79,23 @@ def read_manifest(path: Path) -> dict:
     raise ValueError(f"{path} must hold a JSON object with 'inputs' and 'stages'; move it away or use another --out")
 
 
+_MISSING = object()
+
+
+def changed_inputs(recorded: Any, given: Any, prefix: str = "") -> list[str]:
+    """``"key: recorded -> given"`` for each dotted key whose value differs between two nested ``inputs``
+    records (a key one of them lacks reads ``missing``), sorted."""
+    if isinstance(recorded, dict) and isinstance(given, dict):
+        changed = []
+        for key in sorted(set(recorded) | set(given), key=str):
+            changed += changed_inputs(recorded.get(key, _MISSING), given.get(key, _MISSING), f"{prefix}{key}.")
+        return changed
+    if recorded == given:
+        return []
+    shown = ["missing" if value is _MISSING else repr(value) for value in (recorded, given)]
+    return [f"{prefix.rstrip('.') or 'inputs'}: {shown[0]} -> {shown[1]}"]
+
+
 class PipelineManifest:
     """``pipeline.json``: inputs, seeds, model hashes and, per finished stage, its time and counts."""
 
@@ -86,7 +103,9 @@ class PipelineManifest:
         self.path = path
         previous = read_manifest(path)
         if previous and previous.get("inputs") != inputs:
-            raise ValueError(f"{path} belongs to a pipeline run with other inputs; use another --out")
+            listed = "; ".join(changed_inputs(previous.get("inputs"), inputs))
+            raise ValueError(f"{path} belongs to a pipeline run with other inputs ({listed}); use another --out, "
+                             "or move that folder away")
         self.data = {"inputs": inputs, "stages": previous.get("stages", {})}
 
     def done(self, name: str) -> dict | None:
@@ -505,8 +524,10 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
         cfg = replace(cfg, prelim_run=str(Path(out) / f"round{k}" / "final"))
     ctx, inputs = prepare_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides,
                               prelim_overrides=prelim_overrides, seed=seed, cfg=cfg, show_progress=show_progress)
+    recorded = read_manifest(ctx.out / "pipeline.json").get("inputs")
     if move_changed_run and (moved := move_aside_if_changed(ctx.out, inputs)) is not None:
-        print(f"{ctx.out}: the inputs changed (models, data or settings); the previous run was moved to {moved}")
+        print(f"{ctx.out}: the inputs changed ({'; '.join(changed_inputs(recorded, inputs))}); the previous run "
+              f"was moved to {moved}")
         ctx.out.mkdir(parents=True, exist_ok=True)
     manifest = PipelineManifest(ctx.out / "pipeline.json", inputs)
     if cfg.augment:
