@@ -68,15 +68,18 @@ def test_the_demo_trains_its_baseline_on_l1_and_its_pipelines_final_reconstructi
     assert baseline.schedule.iterations == final.schedule.iterations == 1000
 
 
-def test_only_a_long_dense_run_trains_the_sh_visibility_by_ray_tracing_alone_and_averages_its_last_steps():
+def test_only_a_long_dense_run_trains_the_sh_visibility_by_ray_tracing_averages_and_weakens_the_mask_loss():
     for shorter_or_sparse in (short_schedule(2999, dense=True), short_schedule(20000)):  # sparse: not measured
-        assert "sss_visibility_gradient" not in shorter_or_sparse and "average_last" not in shorter_or_sparse
+        assert not {"sss_visibility_gradient", "average_last", "lambda_mask"} & set(shorter_or_sparse)
+        assert make_config("diamond", overrides=shorter_or_sparse).losses.lambda_mask == 0.1
     for steps, window_start in ((3000, 2700), (10000, 9000)):  # after densification stops at 85% of the run
         long_run = make_config("diamond", overrides=short_schedule(steps, dense=True))
         assert long_run.shading.sss_visibility_gradient is False and long_run.schedule.average_last == 0.1
+        assert long_run.losses.lambda_mask == 0.03
         assert averaging_start(steps, long_run.schedule.average_last, long_run.densify.refine_stop_iter) == window_start
-    preset = make_config("diamond")  # the presets keep the method's visibility and the last step's parameters
+    preset = make_config("diamond")  # the presets keep the method's visibility, mask weight and last parameters
     assert preset.shading.sss_visibility_gradient is True and preset.schedule.average_last == 0.0
+    assert preset.losses.lambda_mask == 0.1
 
 
 def test_scale_schedule_rounds_down_keeps_zero_and_other_keys():
@@ -138,8 +141,8 @@ def test_short_run_overrides_are_the_benchmarks_settings_under_the_config_files(
     3,000 steps on); a --config file's keys come after it."""
     dense = short_run_overrides(3000, dense=True)
     assert make_config("diamond", overrides=dense) == make_config("diamond", overrides=short_schedule(3000, dense=True))
-    assert (dense["schedule.batch_size"], dense["losses.photometric_error"], dense["schedule.average_last"]) == (
-        2, "rmse", 0.1)
+    assert (dense["schedule.batch_size"], dense["losses.photometric_error"], dense["schedule.average_last"],
+            dense["losses.lambda_mask"]) == (2, "rmse", 0.1, 0.03)
     assert (dense["lr.decay_step"], dense["densify.refine_stop_iter"]) == (2100, 2550)
     final = short_run_overrides(1000, pipeline_final=True)
     assert (final["schedule.batch_size"], final["losses.photometric_error"]) == (1, "rmse")
