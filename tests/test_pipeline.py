@@ -21,6 +21,7 @@ from diamond_sss.pipeline.capture import GeneratedImage, write_capture
 from diamond_sss.pipeline.run import (
     PipelineConfig,
     changed_inputs,
+    listed_changes,
     move_aside_if_changed,
     real_copies,
     run_pipeline,
@@ -214,6 +215,10 @@ def test_changed_inputs_name_each_differing_key():
     assert changed_inputs(recorded, given) == ["pipeline.prelim_preset: missing -> None", "pipeline.rounds: 1 -> 2"]
     assert changed_inputs(recorded, recorded) == []
     assert changed_inputs(None, {"seed": 0}) == ["inputs: None -> {'seed': 0}"]
+    many = {"overrides": {f"k{i}": i for i in range(9)}}
+    assert listed_changes(many, {"overrides": {}}, most=2) == (
+        "overrides.k0: 0 -> missing; overrides.k1: 1 -> missing; and 7 more")
+    assert listed_changes(recorded, given) == "pipeline.prelim_preset: missing -> None; pipeline.rounds: 1 -> 2"
 
 
 def test_relighting_targets_the_lights_each_view_lacks(setup, tmp_path):

@@ -96,6 +96,13 @@ def changed_inputs(recorded: Any, given: Any, prefix: str = "") -> list[str]:
     return [f"{prefix.rstrip('.') or 'inputs'}: {shown[0]} -> {shown[1]}"]
 
 
+def listed_changes(recorded: Any, given: Any, most: int = 6) -> str:
+    """The first ``most`` of :func:`changed_inputs`, ``; ``-separated, and how many more there are."""
+    changed = changed_inputs(recorded, given)
+    more = f"; and {len(changed) - most} more" if len(changed) > most else ""
+    return "; ".join(changed[:most]) + more
+
+
 class PipelineManifest:
     """``pipeline.json``: inputs, seeds, model hashes and, per finished stage, its time and counts."""
 
@@ -103,9 +110,9 @@ class PipelineManifest:
         self.path = path
         previous = read_manifest(path)
         if previous and previous.get("inputs") != inputs:
-            listed = "; ".join(changed_inputs(previous.get("inputs"), inputs))
-            raise ValueError(f"{path} belongs to a pipeline run with other inputs ({listed}); use another --out, "
-                             "or move that folder away")
+            raise ValueError(f"{path} belongs to a pipeline run with other inputs "
+                             f"({listed_changes(previous.get('inputs'), inputs)}); use another --out, or move that "
+                             "folder away")
         self.data = {"inputs": inputs, "stages": previous.get("stages", {})}
 
     def done(self, name: str) -> dict | None:
@@ -526,8 +533,8 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
                               prelim_overrides=prelim_overrides, seed=seed, cfg=cfg, show_progress=show_progress)
     recorded = read_manifest(ctx.out / "pipeline.json").get("inputs")
     if move_changed_run and (moved := move_aside_if_changed(ctx.out, inputs)) is not None:
-        print(f"{ctx.out}: the inputs changed ({'; '.join(changed_inputs(recorded, inputs))}); the previous run "
-              f"was moved to {moved}")
+        print(f"{ctx.out}: the inputs changed ({listed_changes(recorded, inputs)}); the previous run was moved "
+              f"to {moved}")
         ctx.out.mkdir(parents=True, exist_ok=True)
     manifest = PipelineManifest(ctx.out / "pipeline.json", inputs)
     if cfg.augment:
