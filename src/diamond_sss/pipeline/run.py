@@ -531,11 +531,12 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
         cfg = replace(cfg, prelim_run=str(Path(out) / f"round{k}" / "final"))
     ctx, inputs = prepare_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides,
                               prelim_overrides=prelim_overrides, seed=seed, cfg=cfg, show_progress=show_progress)
-    recorded = read_manifest(ctx.out / "pipeline.json").get("inputs")
-    if move_changed_run and (moved := move_aside_if_changed(ctx.out, inputs)) is not None:
-        print(f"{ctx.out}: the inputs changed ({listed_changes(recorded, inputs)}); the previous run was moved "
-              f"to {moved}")
-        ctx.out.mkdir(parents=True, exist_ok=True)
+    if move_changed_run:
+        recorded = read_manifest(ctx.out / "pipeline.json").get("inputs")
+        if (moved := move_aside_if_changed(ctx.out, inputs)) is not None:
+            print(f"{ctx.out}: the inputs changed ({listed_changes(recorded, inputs)}); the previous run was moved "
+                  f"to {moved}")
+            ctx.out.mkdir(parents=True, exist_ok=True)
     manifest = PipelineManifest(ctx.out / "pipeline.json", inputs)
     if cfg.augment:
         manifest.stage("prelim", lambda: prelim_stage(ctx))
