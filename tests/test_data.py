@@ -227,6 +227,35 @@ def test_rgb_without_alpha_needs_a_mask_file(tmp_path):
     assert float(sample.rgb[0, 0].abs().sum()) == 0.0  # straight RGB is premultiplied by the mask
 
 
+@pytest.mark.parametrize("declared, edge", [(True, 1.0), (False, 128 / 255), (None, 128 / 255)])
+def test_declared_premultiplied_alpha_decides_for_every_image(tmp_path, declared, edge):
+    """An edge pixel of colour 1 and alpha 128/255 in a file whose RGB is not black where alpha is 0 (synth's
+    colour and coverage passes differ there): kept as 1 when the capture declares its files premultiplied,
+    multiplied by alpha when it declares straight alpha or declares nothing (then each file is guessed)."""
+    make_capture(tmp_path, views=2, lights=1, size=8)
+    rgba = np.zeros((8, 8, 4), np.uint8)
+    rgba[..., :3] = 255
+    rgba[0, 0, :3] = 10
+    rgba[2:6, 2:6, 3] = 255
+    rgba[2, 1, 3] = 128
+    write_png(tmp_path / "train/v000_l000.png", rgba)
+    if declared is not None:
+        path = tmp_path / "transforms_train.json"
+        path.write_text(json.dumps({"premultiplied_alpha": declared, **json.loads(path.read_text())}))
+    rgb = OLATDataset(tmp_path).load(0).rgb
+    assert float(rgb[2, 1, 0]) == pytest.approx(edge, abs=1e-6)
+    assert float(rgb[3, 3, 0]) == pytest.approx(1.0)
+    assert (float(rgb[0, 0, 0]) > 0) == bool(declared)
+
+
+def test_premultiplied_alpha_must_be_a_boolean(tmp_path):
+    make_capture(tmp_path, views=2, lights=1, size=8)
+    path = tmp_path / "transforms_train.json"
+    path.write_text(json.dumps({"premultiplied_alpha": "yes", **json.loads(path.read_text())}))
+    with pytest.raises(DataError, match=r"transforms_train.json.*'premultiplied_alpha'.*true or false, got 'yes'"):
+        OLATDataset(tmp_path)
+
+
 def test_empty_masks_give_one_warning_line_per_process(tmp_path, caplog):
     make_capture(tmp_path, views=3, lights=1, size=8)
     write_png(tmp_path / "train/v001_l000.png", np.zeros((8, 8, 4), np.uint8))

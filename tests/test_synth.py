@@ -186,6 +186,7 @@ def test_writers_are_atomic_and_round_trip(tmp_path):
     path = write_transforms(tmp_path, "train", 0.5, 7, 5, [frame])
     payload = json.loads(path.read_text())
     assert payload["camera_angle_x"] == 0.5 and payload["w"] == 7 and payload["h"] == 5
+    assert payload["premultiplied_alpha"] is True  # the renders' alpha is a separate coverage pass
     assert payload["frames"][0]["depth_path"] == "train/v000_depth.npy"
     assert "normal_path" not in payload["frames"][0]
     leftovers = [p.name for p in tmp_path.rglob("*") if p.name.endswith(".tmp")]

@@ -13,6 +13,11 @@ Cameras
 Radiance
     * Linear radiance inside, float32, premultiplied by alpha over a black background.
     * sRGB (IEC 61966-2-1 transfer curve) only on disk and for metrics.
+    * RGBA image files: a transforms file's top-level ``"premultiplied_alpha": true`` says its images' RGB is
+      premultiplied by alpha (``diamond-sss synth`` writes it: its alpha comes from a separate coverage pass,
+      so RGB may be non-zero where alpha is 0); ``false`` says straight alpha (Blender's PNGs), multiplied by
+      alpha on loading. Without the key each file is guessed: premultiplied when its RGB is black wherever its
+      alpha is 0, straight otherwise (a guess that can differ between the images of one capture).
 
 Lights
     * Point lights, world-space position in scene units, RGB intensity (unitless multiplier).

@@ -142,6 +142,7 @@ class OLATDataset:
         parsed = parse_transforms(self.json_path)
         records = parsed.records
         self.excluded = parsed.excluded
+        self.premultiplied_alpha = parsed.premultiplied_alpha
         self.cameras, view_of_record = _deduplicate_cameras(parsed, self.downscale)
         self.lights, light_of_record = _deduplicate_lights(parsed, light_tolerance)
         self.observations = _observations(self.json_path, records, view_of_record, light_of_record)
@@ -221,7 +222,7 @@ class OLATDataset:
         obs = self.observations[index]
         cached = self._cache.get(index)
         if cached is None:
-            rgb, mask = load_rgba(obs.image_path, obs.mask_path)
+            rgb, mask = load_rgba(obs.image_path, obs.mask_path, self.premultiplied_alpha)
             camera = self.cameras[obs.view]
             rgb = resize_area(rgb, camera.height, camera.width)
             mask = resize_area(mask, camera.height, camera.width)

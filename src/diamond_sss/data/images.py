@@ -92,12 +92,14 @@ def read_image_array(path: Path) -> np.ndarray:
     return (array.astype(np.float32) / scale).clip(0.0, 1.0)
 
 
-def load_rgba(path: Path, mask_path: Path | None = None) -> tuple[Tensor, Tensor]:
+def load_rgba(path: Path, mask_path: Path | None = None,
+              premultiplied: bool | None = None) -> tuple[Tensor, Tensor]:
     """Read an sRGB image as linear RGB ``[H,W,3]`` and its mask ``[H,W,1]``.
 
     The mask is the image's alpha channel, or ``mask_path`` (grey or any channel count: first channel) when
-    given; RGB is returned premultiplied by the mask over black (files that are already premultiplied are
-    unchanged by this, since their RGB is zero where alpha is zero and alpha is 1 inside).
+    given; RGB is returned premultiplied by the mask over black. ``premultiplied``: whether the file's RGB
+    already is (``True``: kept as stored; ``False``: multiplied by the mask); ``None``: decided from this file
+    alone (see :data:`diamond_sss.data.conventions` for the rule and why a capture should declare it).
     """
     array = read_image_array(path)
     channels = array.shape[-1]
@@ -118,14 +120,15 @@ def load_rgba(path: Path, mask_path: Path | None = None) -> tuple[Tensor, Tensor
         raise DataError(f"{path}: RGB image without an alpha channel and without a mask file")
     linear = srgb_to_linear(torch.from_numpy(np.ascontiguousarray(rgb)))
     mask_t = torch.from_numpy(np.ascontiguousarray(mask))
-    return linear * _premultiply_factor(linear, mask_t), mask_t
+    if premultiplied is None:
+        premultiplied = _looks_premultiplied(linear, mask_t)
+    return (linear if premultiplied else linear * mask_t), mask_t
 
 
-def _premultiply_factor(linear: Tensor, mask: Tensor) -> Tensor:
-    """1 where RGB is already premultiplied (zero outside the mask), else the mask itself."""
+def _looks_premultiplied(linear: Tensor, mask: Tensor) -> bool:
+    """An undeclared file's guess: premultiplied when its RGB is black wherever its mask is (almost) zero."""
     outside = mask[..., 0] < 1e-3
-    already_black = bool((linear[outside] <= 1e-6).all()) if outside.any() else True
-    return torch.ones_like(mask) if already_black else mask
+    return bool((linear[outside] <= 1e-6).all()) if outside.any() else True
 
 
 def composite_background(linear_rgb: Tensor, mask: Tensor, background: str) -> Tensor:

@@ -105,6 +105,7 @@ class ParsedTransforms:
     cameras: list[DeclaredCamera]
     lights: list[DeclaredLight]
     excluded: tuple[str, ...] = ()
+    premultiplied_alpha: bool | None = None
 
 
 EXCLUDE_LIST = "exclude_list.txt"
@@ -142,7 +143,8 @@ def is_excluded(entry: str, excluded: frozenset[str]) -> bool:
 def parse_transforms(path: Path) -> ParsedTransforms:
     """Read a transforms JSON file into one :class:`ImageRecord` per image (both variants).
 
-    Optional top-level ``cameras`` (``[{"transform_matrix": ..., "fl_x"/...: ...}]``) and ``lights``
+    Optional top-level ``premultiplied_alpha`` (bool: how the RGBA files store colour, ``data/conventions.py``),
+    ``cameras`` (``[{"transform_matrix": ..., "fl_x"/...: ...}]``) and ``lights``
     (``[{"position": [x,y,z], "intensity": [r,g,b]}]``) declare the capture's full lattice, including cameras
     and lights with no image in this file (e.g. generated data, or the novel views of a regime); they take
     the first lattice indices, in order.
@@ -166,7 +168,11 @@ def parse_transforms(path: Path) -> ParsedTransforms:
         records.extend(_parse_frame(path, root, meta, frame, index, excluded, skipped))
     if not records:
         raise data_error(path, f"every image is named in {root / EXCLUDE_LIST}", key="frames")
-    return ParsedTransforms(records, _declared_cameras(path, meta), _declared_lights(path, meta), tuple(skipped))
+    premultiplied = meta.get("premultiplied_alpha")
+    if premultiplied is not None and not isinstance(premultiplied, bool):
+        raise data_error(path, f"expected true or false, got {premultiplied!r}", key="premultiplied_alpha")
+    return ParsedTransforms(records, _declared_cameras(path, meta), _declared_lights(path, meta), tuple(skipped),
+                            premultiplied)
 
 
 def _declared_cameras(path: Path, meta: dict) -> list[DeclaredCamera]:

@@ -76,6 +76,7 @@ class FrameRecord:
 def transforms_payload(camera_angle_x: float, width: int, height: int, frames: list[FrameRecord]) -> dict:
     """The ``transforms_<split>.json`` dictionary."""
     return {
+        "premultiplied_alpha": True,
         "camera_angle_x": float(camera_angle_x),
         "w": int(width),
         "h": int(height),
