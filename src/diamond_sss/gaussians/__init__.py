@@ -15,12 +15,12 @@ from diamond_sss.gaussians.init import (
 from diamond_sss.gaussians.model import (
     NUM_VISIBILITY_SH,
     PARAM_SHAPES,
-    SH_C0,
     GaussianModel,
     nearest_neighbor_scales,
     outward_normals,
 )
 from diamond_sss.gaussians.ply import base_color_to_sh_dc, export_ply, import_ply, load_points3d_ply
+from diamond_sss.shading.sh import SH_C0
 
 __all__ = [
     "NUM_VISIBILITY_SH",

@@ -17,6 +17,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diamond_sss.data.conventions import project_points, sample_bilinear
+from diamond_sss.errors import data_error
+from diamond_sss.gaussians.model import SCALE_NEIGHBOURS
 from diamond_sss.gaussians.ply import load_points3d_ply
 from diamond_sss.utils import rng
 
@@ -229,9 +231,13 @@ def initial_points(
 ) -> InitialPoints:
     """The initial cloud: ``points3d_path`` if it exists, else the visual hull of ``masks`` (seen by
     ``w2c``, ``K``), else ``num_points`` random points in the bounding sphere. Each fallback is logged
-    as a warning with its reason. ``num_points`` does not apply to a ``points3d.ply``."""
+    as a warning with its reason. ``num_points`` does not apply to a ``points3d.ply``, which must hold more than
+    :data:`~diamond_sss.gaussians.model.SCALE_NEIGHBOURS` points (:class:`DataError` naming it otherwise)."""
     if points3d_path is not None and Path(points3d_path).is_file():
         points, colors, normals = load_points3d_ply(points3d_path)
+        if points.shape[0] <= SCALE_NEIGHBOURS:
+            raise data_error(points3d_path, f"{points.shape[0]} points; the initial Gaussians need at least "
+                             f"{SCALE_NEIGHBOURS + 1} (their scales come from {SCALE_NEIGHBOURS} nearest neighbours)")
         return InitialPoints(points, colors, normals, "points3d")
     if masks is not None and w2c is not None and K is not None:
         try:

@@ -33,10 +33,8 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
+from diamond_sss.shading.sh import SH_C0
 from diamond_sss.utils import rng
-
-SH_C0 = 0.28209479177387814
-"""Degree-0 real spherical harmonic ``Y_0^0 = 1 / (2 sqrt(pi))``."""
 
 VISIBILITY_SH_DEGREE = 3
 NUM_VISIBILITY_SH = (VISIBILITY_SH_DEGREE + 1) ** 2
@@ -76,6 +74,10 @@ learning-rate keys are read from."""
 PARAM_SHAPES: dict[str, tuple[int, ...]] = {param.name: param.shape for param in GAUSSIAN_PARAMS}
 """Per-Gaussian trailing shape of every raw parameter, in storage order."""
 
+SCALE_NEIGHBOURS = 3
+"""Neighbours whose RMS distance is a Gaussian's initial scale (:func:`nearest_neighbor_scales`): a point cloud
+needs more points than this."""
+
 _LOGIT_EPS = 1e-6
 _MIN_KNN_DIST2 = 1e-7
 
@@ -85,7 +87,7 @@ def _logit(value: Tensor | float) -> Tensor:
     return torch.logit(torch.as_tensor(value, dtype=torch.float32), eps=_LOGIT_EPS)
 
 
-def nearest_neighbor_scales(points: Tensor, k: int = 3) -> Tensor:
+def nearest_neighbor_scales(points: Tensor, k: int = SCALE_NEIGHBOURS) -> Tensor:
     """Isotropic initial scale per point: RMS distance to its ``k`` nearest neighbours. ``[N,3] -> [N]``.
 
     ``s_i = sqrt(mean_j ||p_i - p_j||^2)`` over the ``k`` nearest ``j != i`` (3DGS / gsplat's
@@ -185,8 +187,9 @@ class GaussianModel(nn.Module):
             raise ValueError(f"init_visibility must lie in [0, 1], got {init_visibility}")
 
         if init_scale is None:
-            if num < 4:
-                raise ValueError(f"init_scale=None needs at least 4 points for the 3-NN estimate, got {num}")
+            if num <= SCALE_NEIGHBOURS:
+                raise ValueError(f"init_scale=None needs at least {SCALE_NEIGHBOURS + 1} points for the "
+                                 f"{SCALE_NEIGHBOURS}-NN estimate, got {num}")
             scales = nearest_neighbor_scales(points).unsqueeze(-1).expand(num, 3)
         else:
             if init_scale <= 0.0:

@@ -20,11 +20,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData, PlyElement, PlyParseError
 from torch import Tensor
 
 from diamond_sss.data.conventions import srgb_to_linear
-from diamond_sss.gaussians.model import GAUSSIAN_PARAMS, SH_C0, GaussianModel
+from diamond_sss.errors import DamagedFileError
+from diamond_sss.gaussians.model import GAUSSIAN_PARAMS, GaussianModel
+from diamond_sss.shading.sh import SH_C0
 from diamond_sss.utils.io import atomic_write
 
 NUM_F_REST = 45
@@ -49,11 +51,14 @@ _PROPERTY_ORDER = [
 
 def read_vertices(path: str | Path, label: str, required: Sequence[str]) -> tuple[PlyElement, set[str]]:
     """The ``vertex`` element of the PLY file ``path`` and its property names; errors name ``label``, the file
-    and the first of ``required`` that is missing."""
+    and the first of ``required`` that is missing (a damaged file: :class:`DamagedFileError`)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{label} {path} does not exist")
-    ply = PlyData.read(str(path))
+    try:
+        ply = PlyData.read(str(path))
+    except PlyParseError as exc:
+        raise DamagedFileError(f"{path}: damaged or truncated {label} PLY file ({exc})") from exc
     if "vertex" not in ply:
         raise ValueError(f"{label} {path} has no 'vertex' element")
     vertex = ply["vertex"]
@@ -109,7 +114,7 @@ def export_ply(model: GaussianModel, path: str | Path) -> Path:
     state = model.state_tensors()
     columns: dict[str, np.ndarray] = {}
     for key, names in _RAW_FIELDS.items():
-        values = state[key].reshape(model.num_gaussians, -1).numpy().astype(np.float32)
+        values = state[key].reshape(model.num_gaussians, len(names)).numpy().astype(np.float32)
         for column, name in enumerate(names):
             columns[name] = values[:, column]
     f_dc = base_color_to_sh_dc(torch.sigmoid(state["base_color"])).numpy().astype(np.float32)

@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from diamond_sss.data.conventions import project_points, sample_bilinear, unproject_pixels
+from diamond_sss.utils import rng
 
 TargetMode = Literal["nearest-k", "random"]
 
@@ -92,12 +93,16 @@ def sample_view_pairs(
     k: int,
     generator: torch.Generator | None = None,
     candidate_targets: Tensor | None = None,
+    source_views: Tensor | None = None,
 ) -> Tensor:
-    """Sample ``num_pairs`` (source, target) view index pairs. ``camera_centers [V,3]`` -> ``[P,2]`` int64.
+    """Sample up to ``num_pairs`` (source, target) pairs. ``camera_centers [V,3]`` -> ``[P,2]`` int64.
 
-    Sources are uniform over all ``V`` views. Targets are drawn from ``candidate_targets`` (all views
-    if None) minus the source: uniformly (``"random"``) or uniformly among the ``k`` candidates whose
-    centres are closest to the source's (``"nearest-k"``). Deterministic for a seeded ``generator``.
+    Each pair draws its source ``i`` uniformly from ``source_views [S]`` (e.g. the views of a batch; all ``V``
+    views when None), then its target from ``candidate_targets`` (all views if None) minus ``source_views[i]``:
+    uniformly (``"random"``) or uniformly among the ``k`` candidates whose centres are closest to the source's
+    (``"nearest-k"``, distances in the dtype of ``camera_centers``). A row is ``(i, target view)``, so ``i`` is
+    the source view when ``source_views`` is None. A source with no other candidate gives no pair (``P`` may be
+    less than ``num_pairs``). Deterministic for a seeded ``generator``.
     """
     if camera_centers.ndim != 2 or camera_centers.shape[-1] != 3:
         raise ValueError(f"camera_centers must have shape [V,3], got {tuple(camera_centers.shape)}")
@@ -106,24 +111,28 @@ def sample_view_pairs(
     if k < 1 or num_pairs < 0:
         raise ValueError(f"need k >= 1 and num_pairs >= 0, got k={k}, num_pairs={num_pairs}")
     num_views = camera_centers.shape[0]
-    centers = camera_centers.detach().cpu().to(torch.float64)
+    centers = camera_centers.detach().cpu()
     if candidate_targets is None:
         candidates = torch.arange(num_views)
     else:
         candidates = torch.unique(candidate_targets.detach().cpu().to(torch.int64))
         if candidates.numel() and (candidates.min() < 0 or candidates.max() >= num_views):
             raise ValueError(f"candidate_targets must index the {num_views} views")
-    sources = torch.randint(num_views, (num_pairs,), generator=generator)
-    targets = torch.empty(num_pairs, dtype=torch.int64)
-    for p, src in enumerate(sources.tolist()):
-        pool = candidates[candidates != src]
+    views = torch.arange(num_views) if source_views is None else source_views.detach().cpu().to(torch.int64)
+    if views.numel() == 0 or views.min() < 0 or views.max() >= num_views:
+        raise ValueError(f"source_views must be a non-empty list of indices of the {num_views} views")
+    pairs = []
+    for _ in range(num_pairs):
+        i = int(rng.randint(views.numel(), 1, generator=generator))
+        source = views[i]
+        pool = candidates[candidates != source]
         if pool.numel() == 0:
-            raise ValueError(f"source view {src} has no candidate target view other than itself")
+            continue
         if mode == "nearest-k":
-            distance = (centers[pool] - centers[src]).norm(dim=-1)
+            distance = (centers[pool] - centers[source]).norm(dim=-1)
             pool = pool[torch.argsort(distance, stable=True)[:k]]
-        targets[p] = pool[torch.randint(pool.numel(), (1,), generator=generator)]
-    return torch.stack([sources, targets], dim=-1).to(camera_centers.device)
+        pairs.append((i, int(pool[rng.randint(pool.numel(), 1, generator=generator)])))
+    return torch.tensor(pairs, dtype=torch.int64).reshape(-1, 2).to(camera_centers.device)
 
 
 def sample_foreground_pixels(mask: Tensor, num: int, generator: torch.Generator | None = None) -> Tensor:
@@ -137,7 +146,7 @@ def sample_foreground_pixels(mask: Tensor, num: int, generator: torch.Generator 
     if num < 0:
         raise ValueError(f"num must be non-negative, got {num}")
     rows, cols = torch.nonzero(mask.detach() > 0.5, as_tuple=True)
-    order = torch.randperm(rows.numel(), generator=generator)[:num].to(rows.device)
+    order = rng.randperm(rows.numel(), generator=generator, device=rows.device)[:num]
     uv = torch.stack([cols[order], rows[order]], dim=-1).to(torch.float32) + 0.5
     return uv.to(mask.device)
 

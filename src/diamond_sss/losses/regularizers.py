@@ -33,10 +33,10 @@ def _check_same_pixels(name: str, x: Tensor, ref_name: str, ref: Tensor) -> None
 def masked_mean(values: Tensor, mask: Tensor | None) -> Tensor:
     """``sum(M v) / sum(M)`` over all elements, ``M`` broadcast to ``values``; plain mean if ``mask`` is None.
 
-    Returns exactly 0 (with a graph) when the mask is empty.
+    Returns exactly 0 (with a graph) when the mask or ``values`` is empty.
     """
     if mask is None:
-        return values.mean()
+        return values.mean() if values.numel() else values.sum()
     mask = mask.to(values).expand_as(values)
     return safe_ratio((mask * values).sum(), mask.sum())
 
@@ -189,8 +189,9 @@ def normals_from_depth(depth: Tensor, w2c: Tensor, K: Tensor) -> Tensor:
 def normal_consistency_loss(normals: Tensor, pseudo_normals: Tensor, mask: Tensor | None = None) -> Tensor:
     """Eq. A.2: ``mean over M of ||N - N~||_2`` (per-pixel Euclidean norm, as the supplement states).
 
-    Gradients reach both inputs; detach ``pseudo_normals`` at the call site to supervise only the
-    rendered normals (as R3DGS does). ``normals, pseudo_normals [B,H,W,3]``, ``mask [B,H,W,1]`` -> scalar.
+    Gradients reach both inputs: the training objective passes ``pseudo_normals`` attached, so the rendered
+    normals and the rendered depth they come from are pulled toward agreement (R3DGS detaches them and
+    supervises the normals alone). ``normals, pseudo_normals [B,H,W,3]``, ``mask [B,H,W,1]`` -> scalar.
     """
     _check_map("normals", normals, 3)
     if pseudo_normals.shape != normals.shape:

@@ -30,7 +30,7 @@ syncs with the CPU's chunks, 111 with these."""
 
 @dataclass
 class VisibilitySamples:
-    """Transmittance from Gaussian centres: ``dirs [N, S, 3]`` (unit), ``visibility [N, S]`` in ``[0, 1]``."""
+    """Transmittance from ``M`` Gaussian centres: ``dirs [M, S, 3]`` (unit), ``visibility [M, S]`` in ``[0, 1]``."""
 
     dirs: Tensor
     visibility: Tensor
@@ -203,7 +203,8 @@ def raytraced_visibility(
     at the light: ``t_max = |light - mu|``); the next ``num_samples`` columns are directions drawn uniformly
     on the sphere (one set per Gaussian, from ``generator``), unbounded rays. With ``normals [N, 3]``
     the sampled directions are flipped into the hemisphere around the normal (SSS-3DGS). Each ray skips
-    its own source Gaussian. Returns ``dirs [N, S, 3]``, ``visibility [N, S]``, ``S = L + num_samples``.
+    its own source Gaussian. Returns ``dirs [M, S, 3]``, ``visibility [M, S]``, ``S = L + num_samples``, ``M`` the
+    number of sources (``N`` without ``sources``).
     """
     if sources is None:
         sources = torch.arange(means.shape[0], device=means.device)

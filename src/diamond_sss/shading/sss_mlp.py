@@ -100,8 +100,9 @@ class SSSResidualMLP(nn.Module):
     per-camera/light ``[B, N, ...]`` ones): ``positions [..., 3]`` (positionally encoded with
     ``num_freqs`` frequencies plus the raw value), ``quats [..., 4]`` (normalised here), ``scales [..., 3]``
     (activated, i.e. ``exp(log_scale)``), ``view_dirs``/``light_dirs``/``normals [..., 3]`` (normalised
-    here), ``visibility [..., 1]`` (towards the light, in ``[0, 1]``), ``light_distance [..., 1]`` (scene
-    units), ``light_depth [..., 1]`` (scene radii; required with ``light_depth_input``, else ignored).
+    here), ``visibility [..., 1]`` (towards the light, in ``[0, 1]``), ``light_distance [..., 1]`` and
+    ``light_depth [..., 1]`` (required with ``light_depth_input``, else ignored). ``RelightableScene`` passes
+    positions as ``(mu - c) / r`` and scales, light distances and depths in scene radii ``r``.
     Heads: ``R = sigmoid(W h)`` (RGB) and ``L_in = relu(W' leaky(W'' h))`` (one channel).
     """
 

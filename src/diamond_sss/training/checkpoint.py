@@ -197,11 +197,15 @@ def load_checkpoint(folder: Path) -> Checkpoint:
     strategy = dict(meta.get("strategy", {}))
     if (folder / "strategy.safetensors").is_file():
         strategy.update(load_safetensors(folder / "strategy.safetensors"))
-    average = load_safetensors(folder / "average.safetensors") if (folder / "average.safetensors").is_file() else {}
+    average_path = folder / "average.safetensors"
+    average = load_safetensors(average_path) if average_path.is_file() else {}
     averaged_steps = meta.get("extra", {}).get("averaged_steps", 0)
     if average and not (isinstance(averaged_steps, int) and averaged_steps > 0):
-        raise DamagedFileError(f"{state_path}: expected 'extra.averaged_steps' > 0 beside {folder / 'average.safetensors'}"
+        raise DamagedFileError(f"{state_path}: expected 'extra.averaged_steps' > 0 beside {average_path}"
                                f", got {averaged_steps!r}")
+    if not average and averaged_steps:
+        raise DamagedFileError(f"{average_path}: missing or empty, though {state_path} records "
+                               f"'extra.averaged_steps' = {averaged_steps!r}")
     return Checkpoint(step=step, scene=load_safetensors(folder / "scene.safetensors"),
                       optimizers=optimizers, strategy=strategy, extra=meta.get("extra", {}), average=average)
 

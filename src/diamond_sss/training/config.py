@@ -70,9 +70,10 @@ class LearningRates:
     sss_warmup_steps: int = _key(0, "steps of a linear warm-up of the MLP's learning rate from 0",
                                  "sss_lr_warmup_steps")
     light: float = _key(0.001, "learning rate of the log light scale", "light_lr")
-    decay_step: int = _key(50_000, "step from which every learning rate is multiplied by lr.decay_factor (once)",
-                           "lr_decay_step")
-    decay_factor: float = _key(0.1, "factor on every learning rate from lr.decay_step on", "lr_decay_factor")
+    decay_step: int = _key(50_000, "step from which every learning rate but the means' (which follow their own "
+                           "exponential schedule) is multiplied by lr.decay_factor (once)", "lr_decay_step")
+    decay_factor: float = _key(0.1, "factor on every learning rate but the means' from lr.decay_step on",
+                               "lr_decay_factor")
 
 
 @dataclass
@@ -83,7 +84,8 @@ class Gaussians:
     hull_masks: str = _key("all", "masks that carve the visual hull: all (every image source's views, the "
                                   "generated images' too) | real (the capture's views only)")
     count: int = _key(5_000, "initial number of Gaussians", "num_gaussians")
-    max_count: int = _key(300_000, "cap on the number of Gaussians", "max_gaussians")
+    max_count: int = _key(300_000, "cap on the number of Gaussians (a refinement that passes it drops the excess, "
+                         "lowest opacity first)", "max_gaussians")
 
 
 @dataclass
@@ -284,7 +286,7 @@ SHORT_SCHEDULE: dict[str, int] = {
 }
 """Tab. 3's schedule compressed for a run of a few hundred steps (demo, benchmarks), at 1000 steps:
 densification from 25% to 85% of the run every 12.5%, no opacity reset (too short for the Gaussians to
-recover), the position learning rate decaying over the run, the step decay of every learning rate at 70%
+recover), the position learning rate decaying over the run, the step decay of every other learning rate at 70%
 of the run (the paper's is at 50k of 80-100k steps; the preset's 50k is never reached by a 10k-step run), and
 the MLP's (5x Tab. 3's, :data:`SHORT_RUN_MODEL`) warmed up over the first 10%: at the full rate from the first
 step, Adam can drive every weight the same way while the image is too bright, until the residual's sigmoid and the

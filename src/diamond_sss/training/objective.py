@@ -8,6 +8,8 @@
 ``[.]_w``: per-image weighted (1 for real images, ``synthetic_weight`` = alpha for generated ones). ``E`` is each
 image's L1 (Eq. A.1) or RMSE (``losses.photometric_error``). ``E`` and D-SSIM compare sRGB values
 (``losses.photometric_space``, or linear radiance), LPIPS sRGB, the regularisers linear radiance. Geometric terms (mask, normals, multi-view) use every image at full weight.
+With a background ``b`` (``shading.random_background``) the photometric and LPIPS terms compare ``L + (1 - alpha) b``
+with ``I + (1 - M) b`` (render and target over the same colour); the regularisers see the target over black.
 """
 
 from __future__ import annotations
@@ -34,30 +36,35 @@ SMOOTHED_ATTRIBUTES = {
 
 @dataclass
 class TargetBatch:
-    """Ground truth of a batch: linear RGB ``[B,H,W,3]``, masks ``[B,H,W,1]``, per-image weights ``[B]``."""
+    """Ground truth of a batch: linear RGB over black ``[B,H,W,3]``, masks ``[B,H,W,1]``, per-image weights ``[B]``,
+    cameras, and the background colour ``[B,1,1,3]`` the photometric terms composite both images over (None: black)."""
 
     rgb: Tensor
     mask: Tensor
     weights: Tensor
     viewmats: Tensor
     Ks: Tensor
+    background: Tensor | None = None
 
 
 def image_objective(render: SceneRender, target: TargetBatch, cfg: TrainConfig,
                     lpips_model: LPIPS | None) -> dict[str, Tensor]:
     """Weighted loss terms of one batch (each already multiplied by its lambda), by name."""
     terms: dict[str, Tensor] = {}
-    pred = render.radiance
+    gb = render.gbuffer
+    pred, observed = render.radiance, target.rgb
+    if target.background is not None:
+        pred = pred + (1.0 - gb.alpha) * target.background
+        observed = observed + (1.0 - target.mask) * target.background
     if cfg.losses.photometric_space == "srgb":
-        compared, reference = linear_to_srgb(pred), linear_to_srgb(target.rgb)
+        compared, reference = linear_to_srgb(pred), linear_to_srgb(observed)
     else:
-        compared, reference = pred, target.rgb
+        compared, reference = pred, observed
     terms["photometric"] = photometric.photometric_loss(compared, reference, cfg.losses.lambda_dssim, target.weights,
                                                         cfg.losses.photometric_error)
     if lpips_model is not None and cfg.losses.lambda_lpips > 0:
-        distance = lpips_model(linear_to_srgb(pred), linear_to_srgb(target.rgb))
+        distance = lpips_model(linear_to_srgb(pred), linear_to_srgb(observed))
         terms["lpips"] = cfg.losses.lambda_lpips * weighted_mean(distance, target.weights)
-    gb = render.gbuffer
     mask = target.mask
     if cfg.losses.lambda_mask > 0:
         terms["mask"] = cfg.losses.lambda_mask * regularizers.mask_bce_loss(gb.alpha, mask)

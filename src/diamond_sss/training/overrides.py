@@ -138,7 +138,10 @@ def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = N
 
 POSITIVE_KEYS = ("schedule.iterations", "schedule.batch_size", "gaussians.count", "gaussians.max_count",
                  "shading.sss_width", "shading.sss_light_depth_every", "runtime.checkpoint_every", "runtime.log_every",
-                 "densify.refine_every", "raytrace.every", "multiview.target_downscale")
+                 "runtime.image_log_every", "densify.refine_every", "densify.reset_every", "raytrace.every",
+                 "raytrace.gaussians", "multiview.target_downscale", "multiview.pairs_per_step",
+                 "multiview.pixels_per_pair", "multiview.nearest_k")
+"""Sizes and step periods that have no 'off' value (a loss or a process is turned off by its weight or flag)."""
 
 NON_NEGATIVE_INT_KEYS = ("shading.sss_light_depth", "shading.sss_position_freqs", "lr.sss_warmup_steps", "lr.position_delay_steps")
 """Sizes and step counts where 0 means off."""
@@ -161,6 +164,9 @@ def validate_config(config: TrainConfig) -> None:
     for key in non_negative:
         if not config.get(key) >= 0:
             raise ValueError(f"config key '{key}' must be >= 0, got {config.get(key)}")
+    zero = [key for key in ("lr.position_init", "lr.position_final") if config.get(key) == 0]
+    if len(zero) == 1:  # the schedule is log-linear between the two: both > 0, or both 0 to freeze the positions
+        raise ValueError(f"config key '{zero[0]}' must be positive when the other position rate is, got 0.0")
     for key, choices in CHOICES.items():
         if config.get(key) not in choices:
             raise ValueError(f"config key '{key}' must be {'|'.join(choices)}, got '{config.get(key)}'")

@@ -3,8 +3,9 @@
 One step: draw ``B`` (view, light) images (a pure function of the step, so resumed runs see the same
 batches), render them with deferred shading, add the objective's terms (photometric, regularisers,
 ray-traced visibility every ``raytrace_every`` steps, multi-view consistency), back-propagate, step Adam,
-and let gsplat's ``DefaultStrategy`` densify and prune (or keep the Gaussian count fixed), resetting the
-opacities every ``reset_every`` steps while it densifies (:func:`opacity_reset_due`). With
+and let gsplat's ``DefaultStrategy`` densify and prune under ``gaussians.max_count`` (:class:`CappedStrategy`;
+or keep the Gaussian count fixed), resetting the opacities every ``reset_every`` steps while it densifies
+(:func:`opacity_reset_due`). With
 ``schedule.average_last`` the saved model is the mean of the scene tensors over the run's last steps
 (:mod:`diamond_sss.training.averaging`).
 Every random draw of step ``t`` comes from the streams of :mod:`diamond_sss.utils.rng` seeded with
@@ -23,7 +24,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
-from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import reset_opa
 from torch import Tensor
 from tqdm.auto import tqdm
@@ -34,7 +34,12 @@ from diamond_sss.data.images import resize_area
 from diamond_sss.gaussians.init import initial_points
 from diamond_sss.gaussians.model import GAUSSIAN_PARAMS, GaussianModel
 from diamond_sss.losses.lpips import load_lpips
-from diamond_sss.losses.multiview import MultiViewConfig, multiview_losses_batched, sample_foreground_pixels
+from diamond_sss.losses.multiview import (
+    MultiViewConfig,
+    multiview_losses_batched,
+    sample_foreground_pixels,
+    sample_view_pairs,
+)
 from diamond_sss.losses.regularizers import raytrace_visibility_loss
 from diamond_sss.scene.io import read_scene, save_scene, scene_from_tensors, scene_tensors
 from diamond_sss.scene.model import RelightableScene
@@ -43,7 +48,8 @@ from diamond_sss.shading.raytrace import raytraced_visibility
 from diamond_sss.shading.sh import visibility_from_sh
 from diamond_sss.training.averaging import ParameterAverage, averaging_start
 from diamond_sss.training.checkpoint import resume_checkpoint, save_checkpoint
-from diamond_sss.training.config import Densification, TrainConfig
+from diamond_sss.training.config import TrainConfig
+from diamond_sss.training.densify import CappedStrategy, opacity_reset_due
 from diamond_sss.training.lattice import unify_lattices
 from diamond_sss.training.loss_log import LossLog
 from diamond_sss.training.objective import TargetBatch, image_objective
@@ -106,13 +112,11 @@ def gaussian_optimizers(optimizers: dict[str, torch.optim.Optimizer]) -> dict[st
     return {name: optimizers[name] for name in ("means", *GAUSSIAN_LR_KEYS)}
 
 
-def opacity_reset_due(step: int, densify: Densification) -> bool:
-    """3DGS's opacity reset (every opacity clamped to ``2 prune_opa`` and its Adam moments zeroed) after step
-    ``t``: ``0 < t < refine_stop_iter`` and ``t mod reset_every = 0``. gsplat 1.5.3's ``DefaultStrategy`` never
-    does it (its test ``step % reset_every == 0 & step > 0`` is a chained comparison ending in ``0 > 0``;
-    nerfstudio-project/gsplat#776), so the trainer does; the clamp is idempotent, a fixed gsplat resetting too
-    changes nothing."""
-    return 0 < step < densify.refine_stop_iter and step % densify.reset_every == 0
+def strided_quantile(values: Tensor, q: float, max_count: int = 1_000_000) -> float:
+    """The ``q`` quantile of ``values [N]`` over every ``s``-th value, ``s = ceil(N / max_count)`` (all of them for
+    ``N <= max_count``): an even subsample of every image's pixels within ``torch.quantile``'s size limit."""
+    stride = max(1, math.ceil(values.numel() / max_count))
+    return float(torch.quantile(values[::stride], q))
 
 
 class Trainer:
@@ -158,8 +162,8 @@ class Trainer:
             nearest_k=mv.nearest_k, sil_threshold=mv.sil_threshold, occlusion_tol=mv.occlusion_tol,
             charbonnier_eps=mv.charbonnier_eps if mv.charbonnier_eps > 0 else None,
         )
-        self.strategy = (DefaultStrategy(**cfg.densify.strategy_kwargs(), verbose=False)
-                         if cfg.densify.enabled else None)
+        self.strategy = (CappedStrategy(**cfg.densify.strategy_kwargs(), max_count=cfg.gaussians.max_count,
+                                        verbose=False) if cfg.densify.enabled else None)
         every = cfg.shading.sss_light_depth_every
         self.light_maps = LightMapCache(every) if cfg.shading.sss_light_depth > 0 and every > 1 else None
 
@@ -211,8 +215,8 @@ class Trainer:
     def calibrated_light_init(self, max_images: int = 64) -> float:
         """``log`` of a global light scale matched to the capture's units (Tab. 3's ``light_init`` = -1 is
         tied to SSS-3DGS's data): ``log(2 q99 / mean(I_light))``, ``q99`` the 99th percentile of the brightest
-        channel over foreground pixels of up to ``max_images`` training images. At that scale the sigmoid
-        residual ``R I`` can reach twice the brightest observed radiance from the first step.
+        channel over foreground pixels of up to ``max_images`` training images (:func:`strided_quantile`). At that
+        scale the sigmoid residual ``R I`` can reach twice the brightest observed radiance from the first step.
         """
         dataset = self.sources[0].dataset
         count = min(max_images, len(dataset))
@@ -225,7 +229,7 @@ class Trainer:
         foreground = torch.cat(values)
         if foreground.numel() == 0:
             return self.cfg.shading.light_init
-        q99 = float(torch.quantile(foreground[:1_000_000], 0.99))
+        q99 = strided_quantile(foreground, 0.99)
         return float(torch.log(torch.tensor(2.0 * max(q99, 1e-4)) / torch.stack(intensities).mean().clamp_min(1e-8)))
 
     def build_optimizers(self, scene: RelightableScene) -> dict[str, torch.optim.Optimizer]:
@@ -279,13 +283,12 @@ class Trainer:
         rgb = to_device(torch.stack(rgbs), self.device)
         host_masks = torch.stack(masks)
         mask = to_device(host_masks, self.device)
-        if cfg.shading.random_background:
-            background = rng.rand(len(picks), 1, 1, 3, generator=generator, device=self.device)
-            rgb = rgb + (1.0 - mask) * background
+        background = (rng.rand(len(picks), 1, 1, 3, generator=generator, device=self.device)
+                      if cfg.shading.random_background else None)
         views_t = to_device(torch.tensor(views), self.device)
         lights_t = to_device(torch.tensor(lights), self.device)
         target = TargetBatch(rgb=rgb, mask=mask, weights=to_device(torch.tensor(weights), self.device),
-                             viewmats=self.viewmats[views_t], Ks=self.Ks[views_t])
+                             viewmats=self.viewmats[views_t], Ks=self.Ks[views_t], background=background)
         self._batch_views = views
         self._batch_lights = lights
         self._batch_masks = host_masks
@@ -312,25 +315,15 @@ class Trainer:
         generator = rng.stream_generator(cfg.schedule.seed, step, 2)
         candidates = torch.arange(self.union.num_views) if cfg.multiview.include_unobserved_views else torch.tensor(
             sorted(self.view_silhouettes))
-        centers = self.camera_centers
-        sources, targets = [], []
-        for _ in range(cfg.multiview.pairs_per_step):
-            b = int(torch.randint(len(self._batch_views), (1,), generator=generator))
-            view = self._batch_views[b]
-            pool = candidates[candidates != view]
-            if pool.numel() == 0:
-                continue
-            if cfg.multiview.target_mode == "nearest-k":
-                distance = (centers[pool] - centers[view]).norm(dim=-1)
-                pool = pool[torch.argsort(distance, stable=True)[: cfg.multiview.nearest_k]]
-            sources.append(b)
-            targets.append(int(pool[torch.randint(pool.numel(), (1,), generator=generator)]))
-        if not sources:
+        pairs = sample_view_pairs(self.camera_centers, cfg.multiview.pairs_per_step, cfg.multiview.target_mode,
+                                  cfg.multiview.nearest_k, generator, candidates, torch.tensor(self._batch_views))
+        if pairs.numel() == 0:
             return {}
+        sources, targets = pairs[:, 0].tolist(), pairs[:, 1].tolist()
         tgt = to_device(torch.tensor(targets), self.device)
         factor = cfg.multiview.target_downscale
         tgt_width, tgt_height = max(1, self.width // factor), max(1, self.height // factor)
-        tgt_K = scale_intrinsics(self.Ks[tgt], tgt_width / self.width)
+        tgt_K = scale_intrinsics(self.Ks[tgt], tgt_width / self.width, tgt_height / self.height)
         geometry = scene.render_geometry(self.viewmats[tgt], tgt_K, tgt_width, tgt_height)
         tgt_depth, tgt_alpha = geometry.depth[..., 0], geometry.alpha[..., 0]
         silhouettes = torch.stack([
@@ -398,7 +391,7 @@ class Trainer:
         for optimizer in optimizers.values():
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
-        if self.strategy is not None and scene.gaussians.num_gaussians < cfg.gaussians.max_count:
+        if self.strategy is not None:
             self.strategy.step_post_backward(scene.gaussians.params, gaussian_optimizers(optimizers),
                                              strategy_state, step, info, packed=False)
         if self.strategy is not None and opacity_reset_due(step, cfg.densify):
