@@ -76,6 +76,29 @@ def test_stored_maps_missing_raise(view_sample, tmp_path):
     (tmp_path / "data" / "transforms_train.json").write_text(json.dumps(transforms))
     with pytest.raises(GeometryError, match="no stored depth/normal maps"):
         StoredMapsGeometry().maps(OLATDataset(tmp_path / "data"), view, rgb, mask)
+    with pytest.raises(GeometryError, match="no stored depth/normal maps"):
+        StoredMapsGeometry().view_key(OLATDataset(tmp_path / "data"), view)
+
+
+def test_stored_maps_key_the_content_of_the_views_maps(view_sample, tmp_path):
+    import numpy as np
+
+    _, view, _, _ = view_sample
+    shutil.copytree(embedded_dataset("finetune/torus_jade"), tmp_path / "data")
+    dataset = OLATDataset(tmp_path / "data")
+    source = StoredMapsGeometry()
+    first = source.view_key(dataset, view)
+    assert first["kind"] == "maps" and source.view_key(OLATDataset(tmp_path / "data"), view) == first
+    assert source.view_key(dataset, view + 1) != first
+    keys = [first]
+    for name in ("depth", "normal"):
+        path = tmp_path / "data" / "train" / f"v{view:03d}_{name}.npy"
+        values = np.load(path)
+        values[values.shape[0] // 2] *= 0.5
+        np.save(path, values)
+        keys.append(source.view_key(OLATDataset(tmp_path / "data"), view))
+    assert len({json.dumps(key) for key in keys}) == 3  # each edited map is another key
+    assert source.key() == {"kind": "maps"}
 
 
 def test_parse_rejects_unusable_sources(tmp_path):

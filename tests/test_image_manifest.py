@@ -23,6 +23,13 @@ def test_write_then_read_gives_the_same_images(tmp_path):
     assert read_image_manifest(path) == items
 
 
+def test_a_view_off_the_lattice_is_written_and_read_as_null(tmp_path):
+    items = [GeneratedImage(None, 2, *image_paths(tmp_path, "pose_000"))]
+    path = write_image_manifest(tmp_path, items)
+    assert json.loads(path.read_text())[0]["view"] is None
+    assert read_image_manifest(path) == items
+
+
 def test_an_older_novel_view_folder_reads_with_its_own_paths(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps(
         [{"view": 1, "light": 0, "image": "view_001.png", "mask": "view_001_mask.png"}]))
@@ -34,6 +41,8 @@ def test_an_older_novel_view_folder_reads_with_its_own_paths(tmp_path):
     ("{", "not valid JSON"),
     ('{"view": 1}', "must hold a list"),
     ('[{"view": 1, "light": 0, "image": "a.png"}]', r"entry 0: .*\['mask'\]"),
+    ('[{"light": 0, "image": "a.png", "mask": "m.png"}]', r"entry 0: .*\['view'\]"),
+    ('[{"view": 1, "light": null, "image": "a.png", "mask": "m.png"}]', r"entry 0: .*\['light'\]"),
     ('[{"view": "1", "light": 0, "image": "a.png", "mask": "m.png"}]', r"entry 0: .*\['view'\]"),
     ('[3]', r"entry 0: .*\['view', 'light', 'image', 'mask'\]"),
 ])

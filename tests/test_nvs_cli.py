@@ -2,17 +2,22 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import imageio.v3 as iio
 import pytest
 import torch
+from capture_edits import copy_with_mask_files
 from tiny_models import TINY_NVS
 
+from diamond_sss.cli.main import main
 from diamond_sss.cli.nvs_commands import nvs
 from diamond_sss.data.analytic import make_capture
+from diamond_sss.diffusion.common.manifest import read_image_manifest
 from diamond_sss.diffusion.nvs import pipeline
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
+from diamond_sss.pipeline.capture import check_on_lattice
 
 TINY = {**TINY_NVS, "warp_hint": False}
 """The base model (no warp hint); the hint is tested in test_nvs_warp.py."""
@@ -81,6 +86,12 @@ def test_json_poses_through_the_command(setup, tmp_path):
     manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
     assert [m["image"] for m in manifest] == ["images/pose_000.png", "images/pose_001.png"]
     assert all((tmp_path / "out" / m["mask"]).is_file() for m in manifest)
+    # free poses are no lattice views: the manifest says so, and a capture on the lattice refuses them
+    assert [m["view"] for m in manifest] == [None, None]
+    items = read_image_manifest(tmp_path / "out" / "manifest.json")
+    assert [item.view for item in items] == [None, None]
+    with pytest.raises(ValueError, match=r"pose_000\.png: a novel view at a camera given by its pose"):
+        check_on_lattice(items, pipeline.OLATDataset(data))
     # the same cameras given as lattice indices give the same targets
     same = pipeline.parse_targets("2,4", pipeline.OLATDataset(data))
     parsed = pipeline.parse_targets(str(poses), pipeline.OLATDataset(data))
@@ -124,3 +135,52 @@ def test_the_library_takes_typed_targets_not_command_line_text(setup, tmp_path):
         pipeline.generate_novel_views(data, tmp_path / "b", 0, 1, "1,3", model_dir=setup[1], cache_dir=setup[2])
     with pytest.raises(ValueError, match=r"unknown view index \[True\]"):
         run(setup, tmp_path / "c", targets=[True])
+
+
+def test_the_reference_mask_file_is_part_of_the_cache_key(setup, tmp_path, monkeypatch):
+    data = copy_with_mask_files(setup[0], tmp_path / "data")
+    cache = tmp_path / "cache"
+    first = run((data, setup[1], cache), tmp_path / "a")
+    loads = []
+    load = pipeline.NVSModel.load
+    monkeypatch.setattr(pipeline.NVSModel, "load", lambda *a, **k: loads.append(1) or load(*a, **k))
+    run((data, setup[1], cache), tmp_path / "b")
+    assert not loads  # the same inputs: served from the cache
+    mask = pipeline.OLATDataset(data).observations[1].mask_path  # the reference's: view 0, light 1
+    eroded = iio.imread(mask)
+    eroded[: eroded.shape[0] // 2] = 0
+    iio.imwrite(mask, eroded)
+    run((data, setup[1], cache), tmp_path / "c")
+    assert loads == [1]  # another reference mask: generated again, into another entry
+    assert len([entry for folder in cache.iterdir() for entry in folder.iterdir()]) == 2
+    assert json.loads(first.read_text()) == json.loads((tmp_path / "c" / "manifest.json").read_text())
+
+
+def test_finetune_nvs_model_options_given_at_their_defaults_still_win_over_the_init_models(tmp_path, monkeypatch):
+    import diamond_sss.diffusion.nvs.train as nvs_train
+
+    saved = NVSConfig(**{**TINY_NVS, "hint_residual": True, "prediction_type": "v_prediction"})
+    NVSModel(saved).save(tmp_path / "init")
+    seen = {}
+    monkeypatch.setattr(nvs_train, "finetune", lambda data, out, config, **_: seen.update(config=config) or out)
+    base = ["finetune-nvs", "--out", str(tmp_path / "run"), "--data", str(tmp_path)]
+    main([*base, "--init-from", str(tmp_path / "init")])
+    assert seen["config"].model == saved
+    main([*base, "--init-from", str(tmp_path / "init"), "--no-hint-residual", "--prediction-type", "epsilon",
+          "--image-size", "32"])
+    assert seen["config"].model == dataclasses.replace(saved, hint_residual=False, prediction_type="epsilon",
+                                                       image_size=32)
+    main(base)  # without --init-from: the config's defaults
+    assert seen["config"].model == NVSConfig()
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_a_seed_gives_the_same_views_on_cuda_as_on_the_cpu(setup, tmp_path):
+    """The shared initial noise is drawn on the CPU, as the cache key (which has no device) assumes."""
+    images = {}
+    for name, device, seed in (("cpu", "cpu", 0), ("cuda", "cuda", 0), ("other_seed", "cpu", 1)):
+        run((*setup[:2], tmp_path / f"cache_{name}"), tmp_path / name, device=device, seed=seed)
+        images[name] = iio.imread(tmp_path / name / "images" / "view_001.png").astype(int)
+    assert int(abs(images["cpu"] - images["cuda"]).max()) <= 8  # rounding (TF32 convolutions), not other noise
+    assert int(abs(images["cpu"] - images["other_seed"]).max()) > 8

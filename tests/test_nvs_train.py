@@ -10,9 +10,11 @@ from tiny_models import TINY_NVS
 
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.data.embedded import embedded_dataset
+from diamond_sss.diffusion.common.ema import EMA_FILE
 from diamond_sss.diffusion.nvs.data import fixed_light_sequences, sample_batch
 from diamond_sss.diffusion.nvs.model import NVSBatch, NVSConfig, NVSModel
 from diamond_sss.diffusion.nvs.train import FinetuneConfig, finetune
+from diamond_sss.errors import DamagedFileError
 from diamond_sss.utils.io import load_safetensors
 
 TINY = {**TINY_NVS, "warp_hint": False}
@@ -95,7 +97,7 @@ def test_gradient_checkpointing_gives_the_same_gradients(objects):
 
 def tiny_finetune(**settings) -> FinetuneConfig:
     """A fine-tune of the tiny base model on two objects x two views per step."""
-    return FinetuneConfig(objects_per_batch=2, views_per_object=2, model=NVSConfig(**TINY), **settings)
+    return FinetuneConfig(**{"objects_per_batch": 2, "views_per_object": 2, "model": NVSConfig(**TINY), **settings})
 
 
 def test_finetune_resumes_exactly_and_writes_a_loadable_model(objects, tmp_path):
@@ -116,6 +118,44 @@ def test_finetune_resumes_exactly_and_writes_a_loadable_model(objects, tmp_path)
         "step_00000004",
     ]
     NVSModel.load(resumed)
+    # The EMA is checkpointed as safetensors (no accelerate custom-object pickle) and resumes to the same state.
+    checkpoints = tmp_path / "resumed" / "checkpoints"
+    assert not list(checkpoints.rglob("custom_checkpoint_*"))
+    straight_ema = load_safetensors(tmp_path / "straight" / "checkpoints" / "step_00000004" / EMA_FILE)
+    resumed_ema = load_safetensors(checkpoints / "step_00000004" / EMA_FILE)
+    assert straight_ema.keys() == resumed_ema.keys() and int(resumed_ema["num_updates"]) == 4
+    for key in straight_ema:
+        torch.testing.assert_close(straight_ema[key], resumed_ema[key], atol=1e-6, rtol=0, msg=key)
+
+
+def test_a_checkpoint_without_its_ema_is_a_damaged_file(objects, tmp_path):
+    config = tiny_finetune(steps=1, warmup_steps=1, checkpoint_every=1, log_every=1)
+    finetune(objects, tmp_path / "run", config, log=lambda _: None)
+    missing = tmp_path / "run" / "checkpoints" / "step_00000001" / EMA_FILE
+    missing.unlink()
+    config.steps = 2
+    with pytest.raises(DamagedFileError, match=f"{missing}: missing"):
+        finetune(objects, tmp_path / "run", config, log=lambda _: None)
+
+
+def test_a_resume_with_other_settings_or_data_is_refused_naming_them(objects, tmp_path):
+    config = tiny_finetune(steps=1, warmup_steps=1, checkpoint_every=1, log_every=1)
+    finetune(objects, tmp_path / "run", config, log=lambda _: None)
+    recorded = json.loads((tmp_path / "run" / "finetune_config.json").read_text())
+    for changed, message in (({"seed": 3, "learning_rate": 2e-4}, r"learning_rate: 0\.0001 -> 0\.0002; seed: 0 -> 3"),
+                             ({"model": NVSConfig(**{**TINY, "prediction_type": "v_prediction"})},
+                              r"model\.prediction_type: 'epsilon' -> 'v_prediction'")):
+        other = tiny_finetune(steps=2, warmup_steps=1, checkpoint_every=1, log_every=1, **changed)
+        with pytest.raises(ValueError, match=rf"finetune_config\.json: .*other settings \({message}\)"):
+            finetune(objects, tmp_path / "run", other, log=lambda _: None)
+    with pytest.raises(ValueError, match=r"other settings \(data_hash: '[0-9a-f]+' -> '[0-9a-f]+'\)"):
+        finetune(objects[:1], tmp_path / "run", config, log=lambda _: None)
+    assert json.loads((tmp_path / "run" / "finetune_config.json").read_text()) == recorded  # left as it was
+    # its length, logging and checkpointing may change
+    longer = tiny_finetune(steps=2, warmup_steps=1, checkpoint_every=2, log_every=2, time_limit_s=60.0)
+    messages = []
+    finetune(objects, tmp_path / "run", longer, log=messages.append)
+    assert any("resumed" in m and "step 1" in m for m in messages)
 
 
 def test_a_time_limited_run_stops_checkpointed_and_resumes_to_the_uninterrupted_weights(objects, tmp_path):

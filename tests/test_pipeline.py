@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 
+import imageio.v3 as iio
 import pytest
 import torch
 from tiny_models import TINY_NVS, TINY_RELIGHT
@@ -20,6 +21,8 @@ from diamond_sss.pipeline.agreement import agreement_factors, render_errors
 from diamond_sss.pipeline.capture import GeneratedImage, write_capture
 from diamond_sss.pipeline.run import (
     PipelineConfig,
+    PipelineManifest,
+    StageRecord,
     changed_inputs,
     listed_changes,
     move_aside_if_changed,
@@ -151,7 +154,9 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
     assert {"psnr", "ssim", "mask_iou"} <= set(result)
     synthetic = OLATDataset(tmp_path / "synthetic", "train")
     assert len(synthetic) == 6 and synthetic.num_views == 6
-    again = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
+    # the finished stages are reused, also where the diffusion models would now run on another device and cache
+    moved = replace(cfg, device="cuda", cache_dir=str(tmp_path / "other_cache"))
+    again = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=moved, show_progress=False)
     assert again["psnr"] == result["psnr"]
     with pytest.raises(ValueError, match=r"other inputs \(regime: 'views=2,lights=1' -> 'views=3,lights=1'\);"):
         run_pipeline(data, tmp_path, regime="views=3,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
@@ -207,6 +212,37 @@ def test_a_run_with_other_inputs_is_moved_aside_not_deleted(tmp_path):
     (out / "pipeline.json").write_text('{"inputs": ')
     with pytest.raises(ValueError, match=r"diamond/pipeline.json is not valid JSON"):
         move_aside_if_changed(out, {"model": "b"})
+
+
+def test_a_run_resumes_on_another_device_or_cache_but_not_with_other_inputs(tmp_path):
+    path = tmp_path / "pipeline.json"
+    inputs = {"regime": "views=3", "pipeline": {"rounds": 1, "device": "cpu", "cache_dir": None}}
+    PipelineManifest(path, inputs).record(StageRecord("prelim", 1.0, {"real_images": 3}))
+    elsewhere = {"regime": "views=3", "pipeline": {"rounds": 1, "device": "cuda", "cache_dir": "/other/cache"}}
+    resumed = PipelineManifest(path, elsewhere)
+    assert resumed.done("prelim") == {"seconds": 1.0, "real_images": 3}
+    resumed.record(StageRecord("nvs", 2.0))
+    assert json.loads(path.read_text())["inputs"] == elsewhere  # recorded as the latest run had them
+    assert move_aside_if_changed(tmp_path, elsewhere) is None and path.is_file()
+    other = {**elsewhere, "pipeline": {**elsewhere["pipeline"], "rounds": 2}}
+    with pytest.raises(ValueError, match=r"other inputs \(pipeline\.rounds: 1 -> 2\);"):
+        PipelineManifest(path, other)
+
+
+def test_a_downscaled_run_generates_its_images_at_the_reconstructions_size(setup, tmp_path):
+    data = tmp_path / "capture"
+    make_capture(data, views=6, lights=3, size=32)
+    _, nvs, relight, _ = setup
+    cfg = PipelineConfig(nvs_views=2, relight_lights=1, nvs_model=str(nvs), relight_model=str(relight),
+                         relight_samples=1, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(tmp_path / "c"))
+    result = run_pipeline(data, tmp_path / "run", regime="views=2,lights=1", overrides={**TRAIN, "downscale": 2.0},
+                          config=cfg, show_progress=False)
+    assert result["synthetic_images"] == 6 and result["dropped"] == {}
+    synthetic = OLATDataset(tmp_path / "run" / "synthetic", "train")
+    assert (synthetic.width, synthetic.height) == (16, 16) and len(synthetic) == 6
+    generated = [*(tmp_path / "run" / "nvs").glob("*/images/*.png"), *(tmp_path / "run" / "relight" / "out").glob(
+        "images/*.png")]
+    assert len(generated) == 6 and {iio.imread(path).shape[:2] for path in generated} == {(16, 16)}
 
 
 def test_changed_inputs_name_each_differing_key():

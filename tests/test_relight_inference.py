@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import json
 
+import imageio.v3 as iio
+import numpy as np
 import pytest
 import torch
+from capture_edits import copy_with_mask_files
 from test_relight_model import tiny_model
 
 from diamond_sss.cli.main import main
@@ -104,7 +107,7 @@ def test_clear_errors(setup, tmp_path):
     root, model, dataset, view, lights = setup
     cache = OutputCache(tmp_path / "cache")
     missing_light = next(light for light in range(dataset.num_lights) if light not in lights)
-    with pytest.raises(KeyError, match=f"no source image of view {view} under light {missing_light}"):
+    with pytest.raises(ValueError, match=f"no source image of view {view} under light {missing_light}"):
         relight_view(
             model, dataset, view, missing_light, lights[:1], StoredMapsGeometry(), cache, num_steps=1
         )
@@ -152,3 +155,24 @@ def test_ensemble_averages_out_the_sampling_noise(setup, tmp_path):
     assert float(spread_ensemble) < 0.7 * float(spread_single)
     with pytest.raises(ValueError, match="samples must be >= 1"):
         relit(0, 0)
+
+
+def test_the_source_mask_file_and_the_stored_maps_are_part_of_the_cache_key(setup, tmp_path):
+    _, model, dataset, view, lights = setup
+    data = copy_with_mask_files(dataset.root, tmp_path / "data")
+    cache = OutputCache(tmp_path / "cache")
+
+    def cached() -> bool:
+        return relight_view(model, OLATDataset(data), view, lights[0], [lights[1]], StoredMapsGeometry(), cache,
+                            num_steps=1, samples=1)[0].cached
+
+    assert not cached() and cached()
+    source = OLATDataset(data)
+    mask = source.observations[source.observation_index(view, lights[0])].mask_path
+    eroded = iio.imread(mask)
+    eroded[: eroded.shape[0] // 2] = 0
+    iio.imwrite(mask, eroded)
+    assert not cached() and cached()  # another source mask: another entry
+    depth = data / json.loads((data / "transforms_train.json").read_text())["frames"][view]["depth_path"]
+    np.save(depth, np.load(depth) * 1.1)
+    assert not cached()  # other stored depth: another entry

@@ -12,11 +12,13 @@ from test_relight_model import tiny_model
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.embedded import embedded_dataset
 from diamond_sss.data.errors import DataError
-from diamond_sss.diffusion.common.ema import EMA
+from diamond_sss.diffusion.common.ema import EMA, EMA_FILE
 from diamond_sss.diffusion.relight.data import load_finetune_views, load_relight_views
 from diamond_sss.diffusion.relight.losses import RelightLossWeights, low_frequency_l1
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 from diamond_sss.diffusion.relight.train import RelightTrainConfig, finetune, lr_factor, training_loss
+from diamond_sss.errors import DamagedFileError
+from diamond_sss.utils.io import load_safetensors
 
 
 @pytest.fixture(scope="module")
@@ -130,6 +132,35 @@ def test_resume_continues_exactly(views, tmp_path):
         "step_00000003",
     ]
     assert json.loads((tmp_path / "resumed" / "selection.json").read_text())["images"]
+    # The EMA is checkpointed as safetensors (no accelerate custom-object pickle) and resumes to the same state.
+    checkpoints = tmp_path / "resumed" / "checkpoints"
+    assert not list(checkpoints.rglob("custom_checkpoint_*"))
+    straight_ema = load_safetensors(tmp_path / "straight" / "checkpoints" / "step_00000003" / EMA_FILE)
+    resumed_ema = load_safetensors(checkpoints / "step_00000003" / EMA_FILE)
+    assert straight_ema.keys() == resumed_ema.keys() and int(resumed_ema["num_updates"]) == 3
+    assert all(torch.allclose(straight_ema[k], resumed_ema[k], atol=1e-6) for k in straight_ema)
+
+
+def test_a_resume_with_other_settings_or_without_its_ema_is_refused(views, tmp_path):
+    config = RelightTrainConfig(steps=2, batch_size=2, checkpoint_every=1, log_every=1, time_limit_s=0.0)
+    finetune(views, tmp_path / "run", tiny_model(), config)
+    recorded = json.loads((tmp_path / "run" / "train_config.json").read_text())
+    for changed, message in (({"learning_rate": 1e-3}, r"learning_rate: 0\.0005 -> 0\.001"),
+                             ({"steps": 3}, r"steps: 2 -> 3"),  # the cosine decay spans the steps
+                             ({"batch_size": 3, "seed": 1}, r"batch_size: 2 -> 3; seed: 0 -> 1")):
+        other = RelightTrainConfig(**{**config.__dict__, **changed})
+        with pytest.raises(ValueError, match=rf"train_config\.json: .*other settings \({message}\)"):
+            finetune(views, tmp_path / "run", tiny_model(), other)
+    with pytest.raises(ValueError, match=r"other settings \(model\.use_source_light: False -> True\)"):
+        finetune(views, tmp_path / "run", tiny_model(use_source_light=True), config)
+    with pytest.raises(ValueError, match=r"other settings \(data_hash: '[0-9a-f]+' -> '[0-9a-f]+'\)"):
+        finetune(load_relight_views([embedded_dataset("finetune/torus_jade")], resolution=16, min_lights=4),
+                 tmp_path / "run", tiny_model(), config)
+    assert json.loads((tmp_path / "run" / "train_config.json").read_text()) == recorded  # left as it was
+    missing = tmp_path / "run" / "checkpoints" / "step_00000001" / EMA_FILE
+    missing.unlink()
+    with pytest.raises(DamagedFileError, match=f"{missing}: missing"):
+        finetune(views, tmp_path / "run", tiny_model(), RelightTrainConfig(**{**config.__dict__, "time_limit_s": None}))
 
 
 @pytest.mark.cuda

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import typing
 from pathlib import Path
 from typing import Annotated
 
@@ -13,8 +14,28 @@ from diamond_sss.cli.options import config_from, options_of
 from diamond_sss.diffusion.nvs.config import FinetuneConfig, NVSConfig
 
 FinetuneOptions = options_of(FinetuneConfig, exclude=("model",))
-NVSModelOptions = options_of(NVSConfig, include=("space", "image_size", "prediction_type", "hint_residual",
-                                                  "block_out_channels", "layers_per_block"))
+MODEL_OPTIONS = ("space", "image_size", "prediction_type", "hint_residual", "block_out_channels", "layers_per_block")
+"""The ``NVSConfig`` fields ``finetune-nvs`` takes on the command line."""
+
+
+def model_options() -> type:
+    """:func:`options_of` ``NVSConfig``'s :data:`MODEL_OPTIONS`, each defaulting to ``None``: not given, the
+    ``--init-from`` model's value or else the config's default (which the help names)."""
+    hints = typing.get_type_hints(NVSConfig)
+    defaults = NVSConfig()
+    specs = []
+    for name in (f.name for f in dataclasses.fields(NVSConfig) if f.name in MODEL_OPTIONS):
+        default = getattr(defaults, name)
+        shown = " ".join(map(str, default)) if isinstance(default, tuple) else default
+        hint = f"(default: the --init-from model's, else {shown})"
+        specs.append((name, Annotated[hints[name] | None, tyro.conf.DisallowNone,
+                                      tyro.conf.arg(help_behavior_hint=hint)], dataclasses.field(default=None)))
+    options = dataclasses.make_dataclass("NVSConfigOptions", specs)
+    options.__doc__ = NVSConfig.__doc__
+    return options
+
+
+NVSModelOptions = model_options()
 
 
 def finetune_nvs(
@@ -56,14 +77,12 @@ def finetune_nvs(
 def model_config(options: NVSModelOptions, warp_hint: bool | None, vae: Path | None,
                  init_from: str | None) -> NVSConfig:
     """The architecture ``finetune-nvs`` trains: the defaults, or the ``init_from`` model's config, with the
-    model options given on the command line (those that differ from their defaults) on top."""
+    model options given on the command line (those not ``None``) on top."""
     from diamond_sss.diffusion.nvs.model import NVSModel
 
-    defaults = NVSModelOptions()
-    given = {f.name: getattr(options, f.name) for f in dataclasses.fields(options)
-             if getattr(options, f.name) != getattr(defaults, f.name)}
+    given = {f.name: getattr(options, f.name) for f in dataclasses.fields(options) if getattr(options, f.name) is not None}
     if init_from is None:
-        base = NVSConfig(vae_path=None, warp_hint=given.get("space", defaults.space) == "pixel")
+        base = NVSConfig(vae_path=None, warp_hint=given.get("space", NVSConfig.space) == "pixel")
     else:
         base = NVSModel.read_config(init_from)
     if warp_hint is not None:
@@ -91,7 +110,8 @@ def nvs(
     """Generate novel views of an object under a fixed light from one reference image (Free3D-style model).
 
     Writes <out>/images/<name>.png (sRGB, premultiplied, with alpha), <out>/masks/<name>.png and
-    <out>/manifest.json (a list of {view, light, image, mask}); results are cached by model hash and input hash.
+    <out>/manifest.json (a list of {view, light, image, mask}; view is null for a camera from a pose file); results
+    are cached by model hash and input hash.
 
     Args:
         data: OLAT data folder holding transforms_<split>.json.

@@ -32,8 +32,12 @@ def lattice_header(lattice: OLATDataset) -> dict:
 
 def check_on_lattice(items: list[GeneratedImage], lattice: OLATDataset) -> list[GeneratedImage]:
     """``items`` as they are when every view and light index is one of ``lattice``'s; else a ``ValueError`` naming
-    the first image outside it (only a hand-edited manifest can hold one)."""
+    the first image outside it (a novel view made at a camera given by its pose, view ``None``, or a hand-edited
+    manifest)."""
     for item in items:
+        if item.view is None:
+            raise ValueError(f"{item.image}: a novel view at a camera given by its pose (view null in its manifest), "
+                             "not one of the lattice's views: only lattice views join a capture")
         if not (0 <= item.view < len(lattice.cameras) and 0 <= item.light < len(lattice.lights)):
             raise ValueError(f"{item.image}: view {item.view} / light {item.light} outside the lattice's "
                              f"{len(lattice.cameras)} views x {len(lattice.lights)} lights")

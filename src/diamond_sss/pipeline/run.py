@@ -81,6 +81,20 @@ def read_manifest(path: Path) -> dict:
 
 _MISSING = object()
 
+UNCOMPARED_SETTINGS = ("device", "cache_dir")
+"""Pipeline settings that ``pipeline.json`` records but a resumed run may change: where the diffusion models run
+and where their outputs are cached do not change the images (up to CUDA's rounding), so a killed run can move
+from the CPU to a GPU or to another cache."""
+
+
+def compared_inputs(inputs: Any) -> Any:
+    """``inputs`` (a ``pipeline.json`` record) without the :data:`UNCOMPARED_SETTINGS`: what a resumed run must
+    share with the recorded one."""
+    if not (isinstance(inputs, dict) and isinstance(inputs.get("pipeline"), dict)):
+        return inputs
+    settings = {key: value for key, value in inputs["pipeline"].items() if key not in UNCOMPARED_SETTINGS}
+    return {**inputs, "pipeline": settings}
+
 
 def changed_inputs(recorded: Any, given: Any, prefix: str = "") -> list[str]:
     """``"key: recorded -> given"`` for each dotted key whose value differs between two nested ``inputs``
@@ -104,15 +118,16 @@ def listed_changes(recorded: Any, given: Any, most: int = 6) -> str:
 
 
 class PipelineManifest:
-    """``pipeline.json``: inputs, seeds, model hashes and, per finished stage, its time and counts."""
+    """``pipeline.json``: inputs, seeds, model hashes and, per finished stage, its time and counts. The inputs
+    are compared without the :data:`UNCOMPARED_SETTINGS` and recorded with those of the latest run."""
 
     def __init__(self, path: Path, inputs: dict) -> None:
         self.path = path
         previous = read_manifest(path)
-        if previous and previous.get("inputs") != inputs:
+        recorded, given = compared_inputs(previous.get("inputs")), compared_inputs(inputs)
+        if previous and recorded != given:
             raise ValueError(f"{path} belongs to a pipeline run with other inputs "
-                             f"({listed_changes(previous.get('inputs'), inputs)}); use another --out, or move that "
-                             "folder away")
+                             f"({listed_changes(recorded, given)}); use another --out, or move that folder away")
         self.data = {"inputs": inputs, "stages": previous.get("stages", {})}
 
     def done(self, name: str) -> dict | None:
@@ -135,14 +150,15 @@ class PipelineManifest:
 
 
 def move_aside_if_changed(out: Path, inputs: dict) -> Path | None:
-    """Rename a run folder ``out`` whose ``pipeline.json`` records other ``inputs`` (a new model, other data) to
-    ``<out>.<first 8 hex of its inputs' hash>`` (``-2``, ``-3``, ... if taken) and return the new path; ``None``
-    when there is no previous run or it has the same inputs. Nothing is deleted."""
+    """Rename a run folder ``out`` whose ``pipeline.json`` records other ``inputs`` (a new model, other data; compared
+    without the :data:`UNCOMPARED_SETTINGS`) to ``<out>.<first 8 hex of its inputs' hash>`` (``-2``, ``-3``, ... if
+    taken) and return the new path; ``None`` when there is no previous run or it has the same inputs. Nothing is
+    deleted."""
     recorded = read_manifest(out / "pipeline.json")
     if not recorded:
         return None
     previous = recorded.get("inputs")
-    if previous == inputs:
+    if compared_inputs(previous) == compared_inputs(inputs):
         return None
     return move_aside(out, sha256_json(previous)[:8])
 
@@ -391,7 +407,7 @@ def nvs_geometry(cfg: PipelineConfig, prelim_dir: Path) -> GeometrySource:
 
 def nvs_stage(ctx: PipelineContext) -> dict:
     """Novel views into ``<out>/nvs``: under each real light, the (spread) missing views generated from the nearest
-    real view."""
+    real view, at the size the reconstructions train at (the real images over ``runtime.downscale``)."""
     from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
 
     cfg, real = ctx.cfg, ctx.real
@@ -413,7 +429,7 @@ def nvs_stage(ctx: PipelineContext) -> dict:
                                  group, split=ctx.split, model_dir=cfg.nvs_model,
                                  steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=ctx.seed,
                                  cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
-                                 device=cfg.device, geometry=geometry)
+                                 device=cfg.device, geometry=geometry, downscale=ctx.train_cfg.runtime.downscale)
             calls += 1
     return {"targets": len(targets), "calls": calls}
 
@@ -447,7 +463,7 @@ def relight_stage(ctx: PipelineContext, sources_json: Path) -> dict:
     model = load_model(cfg.relight_model, device=cfg.device)
     geometry = RenderedGeometry(ctx.prelim_dir, device=cfg.device)
     cache = OutputCache(Path(cfg.cache_dir) / "relight" if cfg.cache_dir else default_cache_root())
-    dataset = OLATDataset(relight_dir, "sources")
+    dataset = OLATDataset(relight_dir, "sources")  # ctx.real's lattice: already downscaled (runtime.downscale)
     lights_of_view: dict[int, list[int]] = {}
     for obs in dataset.observations:
         lights_of_view.setdefault(obs.view, []).append(obs.light)
@@ -475,7 +491,8 @@ def final_sources(ctx: PipelineContext, generated: list[GeneratedImage],
     extra, factors = [], []
     if generated:
         write_capture(ctx.out / "synthetic", "train", ctx.real, generated)
-        synthetic = OLATDataset(ctx.out / "synthetic", "train", downscale=ctx.train_cfg.runtime.downscale)
+        # ctx.real's lattice and images made at its size: already downscaled (runtime.downscale), read as they are
+        synthetic = OLATDataset(ctx.out / "synthetic", "train")
         if ctx.cfg.agreement_power > 0.0:
             prelim = load_scene(ctx.prelim_dir, resolve_device(ctx.train_cfg.runtime.device))[0]
             errors = render_errors(prelim, ctx.real, generated)
@@ -534,8 +551,8 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     if move_changed_run:
         recorded = read_manifest(ctx.out / "pipeline.json").get("inputs")
         if (moved := move_aside_if_changed(ctx.out, inputs)) is not None:
-            print(f"{ctx.out}: the inputs changed ({listed_changes(recorded, inputs)}); the previous run was moved "
-                  f"to {moved}")
+            print(f"{ctx.out}: the inputs changed ({listed_changes(compared_inputs(recorded), compared_inputs(inputs))})"
+                  f"; the previous run was moved to {moved}")
             ctx.out.mkdir(parents=True, exist_ok=True)
     manifest = PipelineManifest(ctx.out / "pipeline.json", inputs)
     if cfg.augment:

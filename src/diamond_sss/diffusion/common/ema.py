@@ -2,11 +2,23 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
+
+from diamond_sss.errors import DamagedFileError
+from diamond_sss.utils.io import atomic_save_safetensors, load_safetensors
+
+if TYPE_CHECKING:
+    from accelerate import Accelerator
+
+EMA_FILE = "ema.safetensors"
+"""The EMA's state in a fine-tune's checkpoint folder (``step_<N>``), beside what ``accelerator.save_state`` writes."""
 
 
 class EMA:
@@ -71,6 +83,30 @@ class EMA:
         for key in self.shadow:
             self.shadow[key].copy_(state[f"shadow.{key}"])
         self.num_updates = int(state["num_updates"])
+
+
+def save_ema_with_checkpoints(accelerator: Accelerator, ema: EMA) -> None:
+    """Make every ``accelerator.save_state`` also write ``ema``'s state as :data:`EMA_FILE` (safetensors, atomically)
+    into the folder it saves, so the checkpoint holds it when that folder is published. accelerate's
+    ``register_for_checkpointing`` would store it as a pickle and load it back with ``weights_only=False``."""
+
+    def save(models: list, weights: list, output_dir: str) -> None:
+        atomic_save_safetensors(Path(output_dir) / EMA_FILE, ema.state_dict())
+
+    accelerator.register_save_state_pre_hook(save)
+
+
+def load_checkpoint_ema(ema: EMA, folder: str | os.PathLike) -> None:
+    """Restore ``ema`` from the :data:`EMA_FILE` of checkpoint ``folder``. A checkpoint without it (damaged, or
+    written before the EMA was stored so) or with another model's EMA is a :class:`DamagedFileError` naming it."""
+    path = Path(folder) / EMA_FILE
+    if not path.is_file():
+        raise DamagedFileError(f"{path}: missing: checkpoint {folder} holds no EMA weights (damaged, or written by "
+                               "an older version); fine-tune into another --out")
+    try:
+        ema.load_state_dict(load_safetensors(path))
+    except (KeyError, RuntimeError) as exc:
+        raise DamagedFileError(f"{path}: not the EMA of the model being fine-tuned ({exc})") from exc
 
 
 def _float_state(module: nn.Module) -> dict[str, Tensor]:

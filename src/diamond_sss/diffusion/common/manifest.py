@@ -1,7 +1,8 @@
 """Generated images on disk, one layout for both diffusion models.
 
 ``<out>/images/<name>.png`` (sRGB, premultiplied colour, alpha = mask), ``<out>/masks/<name>.png`` (8-bit mask)
-and ``<out>/manifest.json``, a list of ``{view, light, image, mask}`` with paths relative to ``<out>``. Older
+and ``<out>/manifest.json``, a list of ``{view, light, image, mask}`` with paths relative to ``<out>``; ``view`` is
+the lattice view index, or ``null`` for a novel view made at a camera given by its pose (off the lattice). Older
 novel-view folders (``<name>.png`` and ``<name>_mask.png`` beside the manifest) read the same: the paths are
 taken from the manifest.
 """
@@ -17,14 +18,15 @@ from pathlib import Path
 from diamond_sss.utils.io import atomic_write_json
 
 MANIFEST_NAME = "manifest.json"
-_FIELDS = {"view": int, "light": int, "image": str, "mask": str}
+_FIELDS = {"view": (int, type(None)), "light": int, "image": str, "mask": str}
 
 
 @dataclass(frozen=True)
 class GeneratedImage:
-    """One image on the lattice: view and light indices, the image (RGBA or RGB) and an optional mask."""
+    """One generated image: view (``None`` off the lattice: a camera given by its pose) and light indices, the
+    image (RGBA or RGB) and an optional mask."""
 
-    view: int
+    view: int | None
     light: int
     image: Path
     mask: Path | None = None
@@ -60,9 +62,10 @@ def read_image_manifest(path: str | os.PathLike) -> list[GeneratedImage]:
     for index, entry in enumerate(entries):
         fields = entry if isinstance(entry, dict) else {}
         bad = [key for key, kind in _FIELDS.items()
-               if not isinstance(fields.get(key), kind) or isinstance(fields.get(key), bool)]
+               if key not in fields or not isinstance(fields[key], kind) or isinstance(fields[key], bool)]
         if bad:
-            raise ValueError(f"{path}, entry {index}: expected integer view and light and image and mask paths; "
+            raise ValueError(f"{path}, entry {index}: expected an integer (or null) view, an integer light and "
+                             "image and mask paths; "
                              f"bad or missing {bad} in {entry!r}")
         items.append(GeneratedImage(entry["view"], entry["light"], path.parent / entry["image"],
                                     path.parent / entry["mask"]))

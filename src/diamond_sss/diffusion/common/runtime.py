@@ -5,15 +5,20 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import json
 import math
 import os
 import time
-from collections.abc import Callable, Iterable, Iterator
-from typing import ParamSpec, TypeVar
+from collections.abc import Callable, Collection, Iterable, Iterator
+from pathlib import Path
+from typing import Any, ParamSpec, TypeVar
 
 import torch
 from accelerate import Accelerator
 from accelerate.state import AcceleratorState
+
+from diamond_sss.errors import DamagedFileError
+from diamond_sss.utils.io import read_json
 
 P = ParamSpec("P")
 R = TypeVar("R")
@@ -99,3 +104,39 @@ class Deadline:
     def passed(self) -> bool:
         """Whether the limit is spent (never without one)."""
         return self.seconds is not None and self.elapsed() > self.seconds
+
+
+_MISSING = object()
+
+
+def check_resumed_settings(path: str | os.PathLike, settings: dict, may_change: Collection[str]) -> None:
+    """Refuse to resume a fine-tune whose settings, as recorded in ``path`` (JSON) when it started, differ from
+    ``settings`` in any key but the top-level ``may_change`` ones (those that a resumed run may change without
+    making it another run: its length, how often it logs and checkpoints): a ``ValueError`` naming each differing
+    dotted key, ``recorded -> given``."""
+    path = Path(path)
+    recorded = read_json(path)
+    if not isinstance(recorded, dict):
+        raise DamagedFileError(f"{path}: expected a JSON object of fine-tuning settings, got {type(recorded).__name__}")
+    given = json.loads(json.dumps(settings))  # as the record holds them (tuples read back as lists)
+    old, new = _dotted(recorded), _dotted(given)
+    changed = [f"{key}: {_shown(old, key)} -> {_shown(new, key)}" for key in sorted(old.keys() | new.keys())
+               if key.split(".")[0] not in may_change and old.get(key, _MISSING) != new.get(key, _MISSING)]
+    if changed:
+        raise ValueError(f"{path}: the checkpoints in {path.parent} belong to a fine-tune with other settings "
+                         f"({'; '.join(changed)}); resuming would mix two runs: give the recorded settings (only "
+                         f"{', '.join(sorted(may_change))} may change), or fine-tune into another --out")
+
+
+def _dotted(value: Any, prefix: str = "") -> dict[str, Any]:
+    """Leaves of nested dicts by dotted key (a non-dict value is a leaf)."""
+    if not isinstance(value, dict):
+        return {prefix: value}
+    flat: dict[str, Any] = {}
+    for key, item in value.items():
+        flat.update(_dotted(item, f"{prefix}.{key}" if prefix else str(key)))
+    return flat
+
+
+def _shown(values: dict[str, Any], key: str) -> str:
+    return repr(values[key]) if key in values else "missing"

@@ -47,7 +47,13 @@ class GeometrySource(ABC):
 
     @abstractmethod
     def key(self) -> dict:
-        """JSON identity of the source (kind and content hash of its weights), part of cache keys."""
+        """JSON identity of the source (kind and content hash of its weights), part of cache keys through
+        :meth:`view_key`."""
+
+    def view_key(self, dataset: OLATDataset, view: int) -> dict:
+        """JSON identity of the maps of ``view`` of ``dataset`` in cache keys: :meth:`key`, plus the content hash of
+        what the source reads from the data besides the view's image, mask and camera (which the keys hold)."""
+        return self.key()
 
 
 def normals_from_nearness(nearness: Tensor, mask: Tensor) -> Tensor:

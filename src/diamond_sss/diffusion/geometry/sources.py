@@ -14,7 +14,7 @@ from torch import Tensor
 
 from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.data.dataset import OLATDataset
-from diamond_sss.diffusion.common.hashing import files_hash
+from diamond_sss.diffusion.common.hashing import files_hash, state_dict_hash
 from diamond_sss.diffusion.geometry.base import (
     GeometryError,
     GeometryMaps,
@@ -47,16 +47,25 @@ class StoredMapsGeometry(GeometrySource):
     """Depth and world-normal maps stored with the data (``depth_path`` / ``normal_path`` per frame)."""
 
     def maps(self, dataset: OLATDataset, view: int, image: Tensor, mask: Tensor) -> GeometryMaps:
+        depth, normals = self._stored(dataset, view)
+        return _camera_maps(depth, normals, mask, dataset.viewmats[view])
+
+    def key(self) -> dict:
+        return {"kind": "maps"}
+
+    def view_key(self, dataset: OLATDataset, view: int) -> dict:
+        """:meth:`key` and the content hash of the view's stored depth and normal maps (as :meth:`maps` reads them)."""
+        depth, normals = self._stored(dataset, view)
+        return {**self.key(), "maps": state_dict_hash({"depth": depth, "normals": normals})}
+
+    @staticmethod
+    def _stored(dataset: OLATDataset, view: int) -> tuple[Tensor, Tensor]:
         if not dataset.has_geometry_maps(view):
             raise GeometryError(
                 f"{dataset.json_path}: view {view} has no stored depth/normal maps; "
                 "use a reconstruction run folder or depth-anything:/marigold: models"
             )
-        depth, normals = dataset.load_geometry_maps(view)
-        return _camera_maps(depth, normals, mask, dataset.viewmats[view])
-
-    def key(self) -> dict:
-        return {"kind": "maps"}
+        return dataset.load_geometry_maps(view)
 
 
 class RenderedGeometry(GeometrySource):

@@ -2,9 +2,10 @@
 cameras, cached.
 
 Outputs in ``out``: ``images/<name>.png``, ``masks/<name>.png`` and ``manifest.json``
-(:mod:`~diamond_sss.diffusion.common.manifest`; ``<name>`` is ``view_<index>`` or ``pose_<index>``). Generation is
-cached under a key of the model hash and the hash of every input (reference image, cameras, settings, and the
-geometry source that gives a warp-hint model the reference's metric depth).
+(:mod:`~diamond_sss.diffusion.common.manifest`; ``<name>`` is ``view_<index>`` for a lattice view or
+``pose_<index>`` for a camera read from a pose file, listed with view ``None``). Generation is cached under a key of
+the model hash and the hash of every input (reference image and mask, cameras, settings, and the geometry source that
+gives a warp-hint model the reference's metric depth).
 """
 
 from __future__ import annotations
@@ -106,11 +107,12 @@ class NovelViewPipeline:
 
 @dataclass
 class TargetCameras:
-    """Cameras to generate: ``w2c [T,4,4]`` OpenCV, ``K [T,3,3]`` at ``size`` pixels, and their labels."""
+    """Cameras to generate: ``w2c [T,4,4]`` OpenCV, ``K [T,3,3]`` at ``size`` pixels, and their labels: the
+    lattice view of each (``None`` for a camera given by its pose, off the lattice) and its file name."""
 
     w2c: Tensor
     K: Tensor
-    views: list[int]
+    views: list[int | None]
     names: list[str]
     size: int
 
@@ -214,7 +216,7 @@ def _targets_from_json(text: str, dataset: OLATDataset) -> TargetCameras:
     else:
         K = dataset.intrinsics[:1].double().expand(len(matrices), 3, 3)
     n = len(matrices)
-    return TargetCameras(w2c, K.clone(), list(range(n)), [f"pose_{i:03d}" for i in range(n)], size)
+    return TargetCameras(w2c, K.clone(), [None] * n, [f"pose_{i:03d}" for i in range(n)], size)
 
 
 def reference_depth(
@@ -270,15 +272,18 @@ def generate_novel_views(
     cache_dir: str | Path | None = None,
     device: str = "cpu",
     geometry: GeometrySource | None = None,
+    downscale: float = 1.0,
 ) -> Path:
     """Generate the ``targets`` (lattice view indices or cameras, see :func:`parse_targets`) of ``data`` under
     ``light`` from reference ``view``; returns the manifest (:mod:`~diamond_sss.diffusion.common.manifest`).
 
     A model with the warp hint needs ``geometry`` giving the reference's metric depth (stored maps or a
-    reconstruction run folder). Deterministic for a seed; a second call with the same model and inputs is
+    reconstruction run folder). The images are made at the size of ``data``'s images divided by ``downscale``
+    (``OLATDataset``'s), cameras given as :class:`TargetCameras` at their own ``size``. Deterministic for a seed,
+    the same initial noise on every device (drawn on the CPU); a second call with the same model and inputs is
     served from the cache.
     """
-    dataset = OLATDataset(data, split)
+    dataset = OLATDataset(data, split, downscale=downscale)
     if not 0 <= view < dataset.num_views:
         raise ValueError(
             f"unknown view index {view} (the {split} split has views 0..{dataset.num_views - 1})"
@@ -300,20 +305,22 @@ def generate_novel_views(
             f"the novel-view model in {model_dir} uses the warp hint and needs the reference's metric depth: "
             "pass a geometry source ('maps' or a reconstruction run folder)"
         )
-    image_path = dataset.observations[dataset.observation_index(view, light)].image_path
+    observation = dataset.observations[dataset.observation_index(view, light)]
     key = OutputCache.key(
         {
             "model": files_hash(model_dir),
-            "reference": sha256_file(image_path),
+            "reference": sha256_file(observation.image_path),
+            "reference_mask": None if observation.mask_path is None else sha256_file(observation.mask_path),
             "reference_w2c": dataset.viewmats[view].tolist(),
             "reference_K": dataset.intrinsics[view].tolist(),
             "targets_w2c": cameras.w2c.tolist(),
             "targets_K": cameras.K.tolist(),
+            "size": cameras.size,
             "names": cameras.names,
             "steps": steps,
             "guidance_scale": guidance_scale,
             "seed": seed,
-            "geometry": geometry.key() if config.warp_hint else None,
+            "geometry": geometry.view_key(dataset, view) if config.warp_hint else None,
         }
     )
     cache = OutputCache(cache_dir if cache_dir is not None else default_cache_dir("nvs"))
@@ -332,7 +339,7 @@ def generate_novel_views(
             reference_K=ref_K.float().to(device),
             reference_depth=None if depth is None else depth.to(device),
         )
-        generator = torch.Generator(device=device).manual_seed(seed)
+        generator = torch.Generator().manual_seed(seed)  # on the CPU: the same noise on every device
         output = NovelViewPipeline(model)(batch, steps, guidance_scale, generator, size=cameras.size)
         for name, rgb, alpha in zip(cameras.names, output.rgb, output.alpha):
             write_png(folder / f"{name}.png", to_srgb8(rgb, alpha))

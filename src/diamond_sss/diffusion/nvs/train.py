@@ -18,9 +18,11 @@ from diffusers import DDPMScheduler
 from diffusers.optimization import get_constant_schedule_with_warmup
 from torch import Tensor
 
-from diamond_sss.diffusion.common.ema import EMA
+from diamond_sss.diffusion.common.ema import EMA, load_checkpoint_ema, save_ema_with_checkpoints
+from diamond_sss.diffusion.common.hashing import state_dict_hash
 from diamond_sss.diffusion.common.runtime import (
     Deadline,
+    check_resumed_settings,
     deterministic_kernels,
     fused_adamw,
     make_accelerator,
@@ -39,6 +41,11 @@ from diamond_sss.utils.device import to_device
 from diamond_sss.utils.io import atomic_write_json
 
 CHECKPOINTS = "checkpoints"
+SETTINGS = "finetune_config.json"
+"""The run's settings: the ``FinetuneConfig`` and ``data_hash``, the content hash of its training sequences."""
+RESUMABLE = ("steps", "checkpoint_every", "keep_checkpoints", "log_every", "time_limit_s", "gradient_checkpointing")
+"""``FinetuneConfig`` fields a resumed run may change: its length (the learning rate is constant after the warm-up,
+so more steps continue the same run), logging, checkpointing, and recomputing activations (the same gradients)."""
 
 
 @dataclass
@@ -75,7 +82,7 @@ def build_training(data: list[str | Path], config: FinetuneConfig) -> TrainingSt
     model, optimizer, lr_schedule = accelerator.prepare(model, optimizer, lr_schedule)
     raw = accelerator.unwrap_model(model)
     ema = EMA(raw, decay=config.ema_decay)
-    accelerator.register_for_checkpointing(ema)
+    save_ema_with_checkpoints(accelerator, ema)
     return TrainingState(accelerator, model, raw, optimizer, lr_schedule, ema,
                          make_ddpm_scheduler(config.model.scheduler), sequences)
 
@@ -119,21 +126,27 @@ def finetune(
 ) -> Path:
     """Fine-tune on the fixed-illumination sequences of ``data``; write ``out/model`` (EMA weights).
 
-    Returns the model folder. ``out/train_log.jsonl`` records loss, learning rate and seconds per step. With
-    ``config.time_limit_s`` the run stops at the first step past that wall time (counted from the call, loading
-    included), checkpointed; running it again with the same ``out`` resumes it. ``config.init_from`` starts a new
-    run from a saved model's weights (the EMA too); a resumed run takes its checkpoint's.
+    Returns the model folder. ``out/train_log.jsonl`` records loss, learning rate and seconds per step,
+    ``out/finetune_config.json`` the settings (:data:`SETTINGS`). With ``config.time_limit_s`` the run stops at the
+    first step past that wall time (counted from the call, loading included), checkpointed; running it again with
+    the same ``out`` resumes it, with the same settings and data but for the :data:`RESUMABLE` fields (others are
+    refused, naming them). ``config.init_from`` starts a new run from a saved model's weights (the EMA too); a
+    resumed run takes its checkpoint's.
     """
     config = config or FinetuneConfig()
     deadline = Deadline(config.time_limit_s)
     out = Path(out)
     state = build_training(data, config)
-    out.mkdir(parents=True, exist_ok=True)  # after what can be refused: a refused run leaves no folder behind
-    atomic_write_json(out / "finetune_config.json", asdict(config))
-
-    step = 0
+    settings = {**asdict(config), "data_hash": sequences_hash(state.sequences)}
     latest = latest_accelerate_checkpoint(out / CHECKPOINTS) if resume else None
     if latest is not None:
+        check_resumed_settings(out / SETTINGS, settings, RESUMABLE)
+    out.mkdir(parents=True, exist_ok=True)  # after what can be refused: a refused run leaves no folder behind
+    atomic_write_json(out / SETTINGS, settings)
+
+    step = 0
+    if latest is not None:
+        load_checkpoint_ema(state.ema, latest)
         step = load_accelerate_checkpoint(state.accelerator, latest)["step"]
         log(f"resumed from {latest} at step {step}")
 
@@ -162,6 +175,17 @@ def finetune(
 
     with state.ema.averaged(state.raw):
         return state.raw.save(out / "model")
+
+
+def sequences_hash(sequences: list[Sequence]) -> str:
+    """Content hash of training sequences: each one's object name, light, views and tensors, in order."""
+    tensors = {}
+    for index, sequence in enumerate(sequences):
+        prefix = f"{index}|{sequence.name}|{sequence.light}|{sequence.views}"
+        for name in ("images", "w2c", "K", "depth"):
+            if getattr(sequence, name) is not None:
+                tensors[f"{prefix}|{name}"] = getattr(sequence, name)
+    return state_dict_hash(tensors)
 
 
 def _device_generator(device: torch.device, seed: int, step: int) -> torch.Generator:

@@ -1,7 +1,7 @@
 """Relight one view of a capture to several target lights, with an on-disk cache and a manifest.
 
-Cache key of one relit image: the model's weight hash, the source image's file hash, the camera, the
-geometry source's identity, the source and target lights, the DDIM steps, the number of samples and the
+Cache key of one relit image: the model's weight hash, the source image's and its mask's file hashes, the camera,
+the geometry source's identity (with the content of the maps it reads), the source and target lights, the DDIM steps, the number of samples and the
 seed. The initial noise of sample ``k`` of target light ``l`` is drawn from ``seed``, ``l`` and ``k`` alone, so
 a result does not depend on how the target lights were batched. With ``samples > 1`` the image is the mean of
 that many samples (a test-time ensemble, as in Marigold: it averages out the noise the sampler leaves).
@@ -77,8 +77,8 @@ def relight_view(
 ) -> list[RelitImage]:
     """Relight ``(view, source_light)`` of ``dataset`` to every light in ``target_lights`` (lattice indices).
 
-    Cache misses are generated in one batch per sample; hits are read back. Raises ``KeyError`` / ``ValueError`` naming
-    the view or light when the source image or a target light does not exist.
+    Cache misses are generated in one batch per sample; hits are read back. Raises ``ValueError`` naming the view or
+    light when the source image or a target light does not exist.
     """
     if samples < 1:
         raise ValueError(f"samples must be >= 1, got {samples}")
@@ -92,21 +92,23 @@ def relight_view(
     try:
         index = dataset.observation_index(view, source_light)
     except KeyError as error:
-        raise KeyError(
+        raise ValueError(
             f"no source image of view {view} under light {source_light} in {dataset.json_path}"
         ) from error
     sample = dataset.load(index)
     bounds = dataset.bounds
     w2c = dataset.viewmats[view]
+    observation = dataset.observations[index]
     codes = light_code(
         dataset.light_positions, w2c.expand(dataset.num_lights, 4, 4), bounds.center, bounds.radius
     )
     source_key = {
         "model": model.weights_hash(),
-        "image": sha256_file(dataset.observations[index].image_path),
+        "image": sha256_file(observation.image_path),
+        "mask": None if observation.mask_path is None else sha256_file(observation.mask_path),
         "w2c": w2c.flatten().tolist(),
         "K": dataset.intrinsics[view].flatten().tolist(),
-        "geometry": geometry.key(),
+        "geometry": geometry.view_key(dataset, view),
         "source_code": codes[source_light].tolist(),
         "steps": num_steps,
         "samples": samples,

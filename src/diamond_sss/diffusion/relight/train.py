@@ -12,9 +12,11 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from diamond_sss.diffusion.common.ema import EMA
+from diamond_sss.diffusion.common.ema import EMA, load_checkpoint_ema, save_ema_with_checkpoints
+from diamond_sss.diffusion.common.hashing import state_dict_hash
 from diamond_sss.diffusion.common.runtime import (
     Deadline,
+    check_resumed_settings,
     deterministic_kernels,
     fused_adamw,
     make_accelerator,
@@ -32,6 +34,14 @@ from diamond_sss.training.checkpoint import (
 )
 from diamond_sss.utils.device import to_device
 from diamond_sss.utils.io import atomic_write_json
+
+SETTINGS = "train_config.json"
+"""The run's settings: the ``RelightTrainConfig``, the model's config (``model``) and the content hashes of the
+training views (``data_hash``) and of the LPIPS network (``lpips_hash``, null without one)."""
+RESUMABLE = ("checkpoint_every", "log_every", "time_limit_s")
+"""``RelightTrainConfig`` fields a resumed run may change: logging, checkpointing and its wall-time limit. Not
+``steps``: the cosine decay of the learning rate spans them, so more steps would change the rate of steps already
+scheduled."""
 
 
 def step_generator(seed: int, step: int) -> torch.Generator:
@@ -111,13 +121,21 @@ def finetune(
     ``out/selection.json`` and the EMA weights as ``out/model`` (see :meth:`RelightDiffusion.save`).
 
     With ``resume`` the newest complete checkpoint under ``out/checkpoints`` is restored (model, optimizer,
-    schedule, EMA) and training continues from its step with the same batches it would have drawn.
+    schedule, EMA) and training continues from its step with the same batches it would have drawn; the settings
+    (``out/train_config.json``, :data:`SETTINGS`) must be the recorded ones but for the :data:`RESUMABLE` fields
+    (others are refused, naming them).
     """
     deadline = Deadline(config.time_limit_s)
     out = Path(out)
+    checkpoint_root = out / "checkpoints"
+    found = latest_accelerate_checkpoint(checkpoint_root) if resume else None
+    settings = {**asdict(config), "model": model.config.to_dict(), "data_hash": state_dict_hash(asdict_views(views)),
+                "lpips_hash": None if lpips is None else state_dict_hash(lpips.state_dict())}
+    if found is not None:
+        check_resumed_settings(out / SETTINGS, settings, RESUMABLE)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "selection.json", views.selection)
-    atomic_write_json(out / "train_config.json", asdict(config))
+    atomic_write_json(out / SETTINGS, settings)
     accelerator = make_accelerator(config.mixed_precision)
     trainable = [p for p in model.parameters() if p.requires_grad]
     optimizer = fused_adamw(trainable, config.learning_rate, config.weight_decay)
@@ -127,12 +145,12 @@ def finetune(
     model, optimizer, schedule = accelerator.prepare(model, optimizer, schedule)
     unwrapped = accelerator.unwrap_model(model)
     ema = EMA(unwrapped, decay=config.ema_decay)
-    accelerator.register_for_checkpointing(ema)
+    save_ema_with_checkpoints(accelerator, ema)
     if lpips is not None:
         lpips = lpips.to(accelerator.device).requires_grad_(False)
     start = 0
-    checkpoint_root = out / "checkpoints"
-    if resume and (found := latest_accelerate_checkpoint(checkpoint_root)) is not None:
+    if found is not None:
+        load_checkpoint_ema(ema, found)
         start = int(load_accelerate_checkpoint(accelerator, found)["step"])
     device = accelerator.device
     data = {k: v.to(device) for k, v in asdict_views(views).items()}
