@@ -134,9 +134,45 @@ def test_seed_and_device_flags_left_out_keep_the_config_files_values(tmp_path, m
     assert seen["overrides"] == {"seed": 5, "device": "cpu"}
     monkeypatch.setattr(ablation, "run_ablation", lambda data, out, **kwargs: seen.update(kwargs) or [])
     main(["ablate", "--data", str(tmp_path), "--out", str(tmp_path / "ablation"), "--set", "seed=3"])
-    assert seen["overrides"] == {"seed": 3}
+    assert seen["overrides"]["schedule.seed"] == 3
     main(["ablate", "--data", str(tmp_path), "--out", str(tmp_path / "ablation"), "--seed", "4"])
-    assert seen["overrides"] == {"seed": 4}
+    assert seen["overrides"]["schedule.seed"] == 4
+    main(["ablate", "--data", str(tmp_path), "--out", str(tmp_path / "ablation"), "--seed", "4", "--set", "seed=3"])
+    assert seen["overrides"]["schedule.seed"] == 3
+
+
+def test_ablate_trains_the_benchmarks_short_schedule_and_densifies_within_its_steps(tmp_path, monkeypatch):
+    """``diamond-sss ablate`` builds each run's config as benchmarks/ablation.py does: the short-run settings
+    scaled to --iterations (the preset's 10,000-step schedule would start densifying after the run's end), a dense
+    capture's on the regime ``all``, --set's last."""
+    from diamond_sss.experiments import ablation
+    from diamond_sss.training.config import DENSE_SHORT_RUN
+    from diamond_sss.training.overrides import make_config
+
+    configs = {}
+
+    def fake_train_run(data, run, *, regime, preset, overrides, **kwargs):
+        configs[regime, run.name] = make_config(preset, overrides=overrides)
+
+    monkeypatch.setattr(ablation, "train_run", fake_train_run)
+    monkeypatch.setattr(ablation, "evaluate_run", lambda *args, **kwargs: {"psnr": 0.0, "ssim": 0.0, "mask_iou": 0.0})
+    monkeypatch.setattr(ablation, "write_ablation_report", lambda *args: None)
+    monkeypatch.setattr(ablation, "save_ablation_figure", lambda *args: None)
+    base = ["ablate", "--data", str(tmp_path), "--out", str(tmp_path / "ablation"), "--quiet"]
+    main([*base, "--iterations", "400", "--regimes", "all", "views=3,lights=3"])
+    assert len(configs) == 2 * len(ablation.VARIANTS)
+    for (regime, variant), cfg in configs.items():
+        densify = cfg.densify
+        refine_steps = [step for step in range(cfg.schedule.iterations) if densify.refine_start_iter < step
+                        < densify.refine_stop_iter and step % densify.refine_every == 0]
+        assert cfg.schedule.iterations == 400 and densify.enabled and len(refine_steps) >= 3, (regime, variant)
+        assert densify.reset_every > cfg.schedule.iterations  # the short schedule has no opacity reset
+        assert cfg.schedule.batch_size == (DENSE_SHORT_RUN["batch_size"] if regime == "all" else 1)
+    assert configs["all", "+both"].losses.lambda_sil == make_config("diamond").losses.lambda_sil
+    assert configs["all", "+depth"].losses.lambda_sil == 0.0
+    configs.clear()
+    main([*base, "--iterations", "400", "--regimes", "all", "--variants", "+both", "--set", "batch_size=3"])
+    assert configs["all", "+both"].schedule.batch_size == 3
 
 
 def test_the_cli_defaults_are_the_experiments_own():

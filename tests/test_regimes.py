@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -110,6 +111,23 @@ def test_only_existing_observations_are_used(lattice):
     selection = select_regime(sparse, "all-views-1-light", seed=0)
     assert all((sparse.observations[i].view + sparse.observations[i].light) % 2 == 0
                for i in selection.observations)
+
+
+def test_a_regime_that_picks_no_captured_image_is_an_error():
+    """On a lattice with missing images, the picked views and lights may share no image: an error naming the
+    regime, the seed and the picks, not an empty selection that fails later in training."""
+    ds = OLATDataset(Path(__file__).parent / "fixtures" / "formats" / "object_full")
+    assert not ds.presence.all()
+    with pytest.raises(ValueError, match=r"regime 'views=1,lights=1' \(seed 3\) picked views \[0\] and lights \[2\], "
+                                         r"of which .*transforms_train.json has no image"):
+        select_regime(ds, "views=1,lights=1", 3)
+    selections = []
+    for seed in range(8):  # a seed that picks a captured pair selects its image
+        try:
+            selections.append(select_regime(ds, "views=1,lights=1", seed))
+        except ValueError:
+            continue
+    assert selections and all(len(s.observations) == 1 and ds.presence[s.views[0], s.lights[0]] for s in selections)
 
 
 def test_determinism_and_bad_specs(lattice):

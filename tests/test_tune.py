@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import re
 
 import imageio.v3 as iio
 import pytest
@@ -192,6 +194,11 @@ def test_run_study_is_the_job_behind_the_cli(capture, tmp_path):
     assert set(result.paths) == {"plot", "table", "config", "best_trial", "trials"} and all(p.is_file() for p in result.paths.values())
     again = run_study(data, tmp_path / "out", settings, study, trials=2, report_only=True)
     assert again.ran == [] and again.study.best_trial.value == result.study.best_trial.value
+    typo = dataclasses.replace(study, study_name="diamond-ss")
+    with pytest.raises(ValueError, match=re.escape(f"study 'diamond-ss' not found in sqlite:///{tmp_path}/study.db; "
+                                                   "studies there: ['diamond-sss']")):
+        run_study(data, tmp_path / "out", settings, typo, trials=2, report_only=True)
+    assert optuna.get_all_study_names(study.storage) == ["diamond-sss"]  # report-only created nothing
 
 
 def test_tune_rejects_contradictory_options(capture, tmp_path):

@@ -124,19 +124,19 @@ def render(run: Path, out: Path, data: Path | None = None, split: str = "test", 
     Args:
         run: training run folder.
         out: output folder for PNGs (and the orbit animation).
-        data: data folder whose cameras (and first light) to use; default: the run's training data.
+        data: data folder whose cameras (and lights) to use; default: the run's training data.
         split: split of --data whose cameras --views index.
         views: lattice view indices of --split to render (default: all).
         orbit: render an orbit of N frames around the object instead (and the --video animation).
         orbit_elevation_deg: elevation of the orbit.
         light: light position(s) x y z [x y z ...] (several lights are summed); default: each view's
-            first light in the data.
-        light_intensity: RGB intensity (grey) of each given light.
+            first light in the data (an orbit's: that of the data's first image), at the capture's intensity.
+        light_intensity: RGB intensity (grey) of each light given by --light.
         base_color: override the base colour (r g b, linear) of every Gaussian.
         roughness: override the roughness.
         metallic: override the metalness.
         subsurface: override the subsurfaceness s.
-        size: image size of orbit frames (default: the data's width).
+        size: side of the square orbit frames, centred on the object (default: the data's width).
         video: orbit animation, a name in --out or a path: .mp4 writes an MP4 (needs imageio-ffmpeg, the
             `video` extra), .gif a GIF.
         device: auto | cpu | cuda.
@@ -195,13 +195,19 @@ def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5,lights=6
         out: output folder.
         regimes: capture regimes to compare.
         variants: sss3dgs | diamond-no-mv | +silhouette | +depth | +both.
-        iterations: training steps per run.
+        iterations: training steps per run, with the short-run settings (training.config.short_schedule) scaled
+            to them and, on the dense regime all, a dense capture's (DENSE_SHORT_RUN), as benchmarks/ablation.py
+            trains; --set's keys come after them.
         seed: seed of every run (schedule.seed; default: the preset's).
         quiet: no progress bars.
     """
     from diamond_sss.experiments.ablation import ablation_table, run_ablation
-    from diamond_sss.training.overrides import parse_sets
+    from diamond_sss.training.config import DENSE_SHORT_RUN, short_schedule
+    from diamond_sss.training.overrides import checked_values, parse_sets
 
+    sets = checked_values({**given_overrides(seed=seed), **parse_sets(set_)})
+    dense = {key: value for key, value in checked_values(DENSE_SHORT_RUN).items() if key not in sets}
     rows = run_ablation(data, out, variants=variants, regimes=regimes, iterations=iterations,
-                        overrides={**given_overrides(seed=seed), **parse_sets(set_)}, show_progress=not quiet)
+                        overrides={**checked_values(short_schedule(iterations)), **sets}, dense_overrides=dense,
+                        show_progress=not quiet)
     Console().print(ablation_table(rows))

@@ -202,6 +202,12 @@ class OLATDataset:
             grid[obs.view, obs.light] = True
         return grid
 
+    def first_light(self, view: int | None = None) -> Light:
+        """The light of the first image (in the data's order) of lattice view ``view``; of the data's first image
+        when ``view`` is ``None`` or has no image."""
+        first = next((obs for obs in self.observations if obs.view == view), self.observations[0])
+        return self.lights[first.light]
+
     def observation_index(self, view: int, light: int) -> int:
         """Index of the observation of ``(view, light)``; ``KeyError`` when it was not captured."""
         for index, obs in enumerate(self.observations):

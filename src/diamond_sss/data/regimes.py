@@ -129,6 +129,10 @@ def select_regime(dataset: OLATDataset, spec: str, seed: int = 0) -> RegimeSelec
     light_set = set(lights)
     view_set = set(views)
     chosen = [i for i, obs in enumerate(dataset.observations) if obs.view in view_set and obs.light in light_set]
+    if not chosen:
+        raise ValueError(f"regime '{spec}' (seed {seed}) picked views {sorted(views)} and lights {sorted(lights)}, "
+                         f"of which {dataset.json_path} has no image: ask for more views or lights, another seed, "
+                         "or 'images=N'")
     return RegimeSelection(spec=spec, seed=seed, views=sorted(views), lights=sorted(lights), observations=chosen)
 
 

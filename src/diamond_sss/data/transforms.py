@@ -66,8 +66,7 @@ def transforms_path(root: Path, split: str) -> Path:
         raise DataError(f"data folder not found: {root}")
     path = root / f"transforms_{split}.json"
     if not path.is_file():
-        found = sorted(p.stem[len("transforms_"):] for p in root.glob("transforms_*.json"))
-        raise DataError(f"{path}: split '{split}' not found; splits in {root}: {found or 'none'}")
+        raise DataError(f"{path}: split '{split}' not found; splits in {root}: {available_splits(root) or 'none'}")
     return path
 
 

@@ -11,8 +11,8 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from diamond_sss.data.conventions import look_at_opengl_c2w, opengl_c2w_to_opencv_w2c
-from diamond_sss.data.dataset import OLATDataset
+from diamond_sss.data.conventions import intrinsics_matrix, look_at_opengl_c2w, opengl_c2w_to_opencv_w2c
+from diamond_sss.data.dataset import Light, OLATDataset
 from diamond_sss.data.images import to_srgb8, write_png
 from diamond_sss.evaluation.evaluate import (
     evaluate_scene,
@@ -85,8 +85,10 @@ def render_run(run: Path, out: Path, *, data: Path | None = None, split: str = "
                views: Sequence[int] = (), orbit: int = 0, orbit_elevation_deg: float = 20.0,
                lights: Sequence[float] = (), light_intensity: float = 1.0, overrides: dict | None = None,
                size: int | None = None, device: str = "auto", video: Path = Path("orbit.gif")) -> list[Path]:
-    """Render data cameras or an orbit under given lights (summed) with material overrides: PNGs, and for an
-    orbit the animation ``out / video`` (GIF, or MP4 for a ``.mp4`` name)."""
+    """Render data cameras or an orbit under given lights (summed, each of RGB intensity ``light_intensity``;
+    default: each data view's first light at the capture's intensity, an orbit's the data's first image's) with
+    material overrides: PNGs, and for an orbit (square frames centred on the object) the animation ``out / video``
+    (GIF, or MP4 for a ``.mp4`` name)."""
     if orbit > 0:
         check_animation_path(video)
     run = Path(run)
@@ -97,32 +99,32 @@ def render_run(run: Path, out: Path, *, data: Path | None = None, split: str = "
     dataset = OLATDataset(data, split, downscale=cfg.runtime.downscale)
     if len(lights) % 3 != 0:
         raise ValueError(f"--light expects x y z triples, got {len(lights)} numbers")
-    light_list = [torch.tensor(lights[i:i + 3], dtype=torch.float32) for i in range(0, len(lights), 3)]
+    given = [Light(position=torch.tensor(lights[i:i + 3], dtype=torch.float32),
+                   intensity=torch.full((3,), float(light_intensity))) for i in range(0, len(lights), 3)]
     if orbit > 0:
         width = height = size or dataset.width
-        K = dataset.intrinsics[0].clone()
-        K[:2] *= width / dataset.width
+        K = dataset.intrinsics[0]
+        scale = width / dataset.width
+        K = intrinsics_matrix(float(K[0, 0]) * scale, float(K[1, 1]) * scale, 0.5 * width, 0.5 * height)
         bounds = dataset.bounds
         distance = float(dataset.camera_centers.sub(bounds.center).norm(dim=-1).mean())
-        cameras = [(w2c, K) for w2c in orbit_cameras(bounds.center, distance, orbit, orbit_elevation_deg)]
+        cameras = [(w2c, K, given or [dataset.first_light()])
+                   for w2c in orbit_cameras(bounds.center, distance, orbit, orbit_elevation_deg)]
     else:
         chosen = list(views) or list(range(dataset.num_views))
         for view in chosen:
             if not 0 <= view < dataset.num_views:
                 raise ValueError(f"--views: view {view} is not in {data} [{split}] (0..{dataset.num_views - 1})")
-        cameras = [(dataset.cameras[v].w2c, dataset.cameras[v].K) for v in chosen]
+        cameras = [(dataset.cameras[v].w2c, dataset.cameras[v].K, given or [dataset.first_light(v)]) for v in chosen]
         width, height = dataset.width, dataset.height
-    if not light_list:
-        light_list = [dataset.lights[0].position]
-    intensity = torch.full((1, 3), float(light_intensity), device=dev)
     out = Path(out)
     written, frames = [], []
-    for k, (w2c, K) in enumerate(cameras):
+    for k, (w2c, K, frame_lights) in enumerate(cameras):
         radiance = torch.zeros(height, width, 3, device=dev)
         alpha = torch.zeros(height, width, 1, device=dev)
-        for position in light_list:
-            render = scene.render(w2c[None].to(dev), K[None].to(dev), width, height, position[None].to(dev),
-                                  intensity, overrides=overrides)
+        for light in frame_lights:
+            render = scene.render(w2c[None].to(dev), K[None].to(dev), width, height, light.position[None].to(dev),
+                                  light.intensity[None].to(dev), overrides=overrides)
             radiance += render.radiance[0]
             alpha = render.gbuffer.alpha[0]
         image = to_srgb8(radiance.cpu(), alpha.cpu())

@@ -28,12 +28,13 @@ def run_study(data: TuneData, out: Path, objective: ObjectiveSettings, study: St
     ``timeout`` seconds pass, then write the report to ``out`` (``report_only``: only the report).
 
     Raises:
-        ValueError: fewer than 2 trials with the presets enqueued, or a study created with other settings.
+        ValueError: fewer than 2 trials with the presets enqueued, a study created with other settings, or with
+            ``report_only`` a study that is not in the storage.
     """
     if study.enqueue_presets and trials < 2 and not report_only:
         raise ValueError(f"--trials {trials}: a study starts with the two preset trials; ask for at least 2 "
                          "or pass --no-enqueue-presets")
-    optuna_study = open_study(study, objective.fingerprint(data))
+    optuna_study = open_study(study, objective.fingerprint(data), create=not report_only)
     ran = [] if report_only else run_worker(optuna_study, Objective(data, objective), trials, timeout=timeout,
                                             poll_seconds=study.heartbeat_interval / 2)
     return StudyResult(study=optuna_study, ran=ran, paths=write_report(optuna_study, out))

@@ -135,31 +135,45 @@ def make_storage(settings: StudySettings) -> optuna.storages.RDBStorage:
                              "(pip install 'diamond-sss[tune]' for PostgreSQL)") from exc
 
 
-def open_study(settings: StudySettings, fingerprint: dict[str, Any]) -> optuna.Study:
+def open_study(settings: StudySettings, fingerprint: dict[str, Any], *, create: bool = True) -> optuna.Study:
     """Create the study (enqueueing the presets) or join it; a study made with other settings is refused.
 
     ``fingerprint`` is what every worker must agree on (trial length, regime, validation split, ...).
+    ``create=False`` (``tune --report-only``) opens an existing study only: a name that is not in the storage is an
+    error listing the studies there, and no study is created.
     """
     storage = make_storage(settings)
     sampler = optuna.samplers.TPESampler(seed=settings.seed * 1000 + settings.worker, constant_liar=True)
     pruner = optuna.pruners.MedianPruner(n_startup_trials=settings.pruner_startup_trials,
                                          n_warmup_steps=settings.pruner_warmup_steps)
+    if not create:
+        return _join_study(storage, settings, sampler, pruner, fingerprint)
     try:
         study = optuna.create_study(storage=storage, study_name=settings.study_name, direction="maximize",
                                     sampler=sampler, pruner=pruner)
     except optuna.exceptions.DuplicatedStudyError:
-        study = optuna.load_study(study_name=settings.study_name, storage=storage, sampler=sampler,
-                                  pruner=pruner)
-        recorded = _wait_for_fingerprint(study)
-        if recorded != fingerprint:
-            changed = sorted(k for k in {*recorded, *fingerprint} if recorded.get(k) != fingerprint.get(k))
-            raise ValueError(f"study '{settings.study_name}' was created with other settings "
-                             f"({', '.join(changed)}); use the same options or another --study name")
-        return study
+        return _join_study(storage, settings, sampler, pruner, fingerprint)
     if settings.enqueue_presets:
         for preset in (ORIGINAL_PRESET, BEST_PRESET):
             study.enqueue_trial(preset_params(preset), user_attrs={"preset": preset})
     study.set_user_attr("settings", fingerprint)
+    return study
+
+
+def _join_study(storage: optuna.storages.RDBStorage, settings: StudySettings, sampler: optuna.samplers.BaseSampler,
+                pruner: optuna.pruners.BasePruner, fingerprint: dict[str, Any]) -> optuna.Study:
+    """The existing study ``settings.study_name``, refused when made with settings other than ``fingerprint``."""
+    try:
+        study = optuna.load_study(study_name=settings.study_name, storage=storage, sampler=sampler, pruner=pruner)
+    except KeyError:
+        present = optuna.get_all_study_names(storage)
+        raise ValueError(f"study '{settings.study_name}' not found in {masked_url(settings.storage)}; studies there: "
+                         f"{present or 'none'} (check --study and --storage)") from None
+    recorded = _wait_for_fingerprint(study)
+    if recorded != fingerprint:
+        changed = sorted(k for k in {*recorded, *fingerprint} if recorded.get(k) != fingerprint.get(k))
+        raise ValueError(f"study '{settings.study_name}' was created with other settings "
+                         f"({', '.join(changed)}); use the same options or another --study name")
     return study
 
 
