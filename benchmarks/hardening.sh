@@ -15,7 +15,7 @@ from diamond_sss.data.analytic import make_capture
 make_capture(Path('$D/data'), views=4, lights=2, size=12)
 make_capture(Path('$D/data'), views=2, lights=1, size=12, split='test', camera_offset=0.4, light_offset=0.9)"
 TINY="--set num_gaussians=200 --set lambda_lpips=0 --set raytrace_gaussians=32 --set mv_pixels_per_pair=16 --set batch_size=1 --set device=cpu"
-$CLI train --data $D/data --out $D/run --iterations 6 --quiet $TINY --set checkpoint_every=2 > /dev/null 2>&1
+$CLI train --data $D/data --out $D/run --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 > /dev/null 2>&1
 row() {  # row "label" command...
   local label="$1"; shift
   out=$("$@" 2>&1 | grep -v "^\s*$" | tail -n 3 | tr '\n' ' ' | sed "s|$D|D|g; s/|/\\|/g" | cut -c1-700)
@@ -42,14 +42,14 @@ row "export (config.json corrupt)" $CLI export --run $D/r2 --ply $D/x.ply
 cp_run; echo '{"data": ' > $D/r2/data.json
 row "render (data.json corrupt)" $CLI render --run $D/r2 --out $D/frames
 cp_run; $PY -c "import pathlib; p=pathlib.Path('$NEWEST/scene.safetensors'); b=p.read_bytes(); p.write_bytes(b[:len(b)//2])"
-row "train --resume (newest checkpoint's scene.safetensors cut to half)" $CLI train --data $D/data --out $D/r2 --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
+row "train --resume (newest checkpoint's scene.safetensors cut to half)" $CLI train --data $D/data --out $D/r2 --iterations 8 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
 cp_run; echo '{"step": 4,' > $D/r2/checkpoints/latest.json
-row "train --resume (latest.json corrupt)" $CLI train --data $D/data --out $D/r2 --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
+row "train --resume (latest.json corrupt)" $CLI train --data $D/data --out $D/r2 --iterations 8 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
 cp_run; echo '{"step": 4' > $NEWEST/state.json
-row "train --resume (newest state.json corrupt)" $CLI train --data $D/data --out $D/r2 --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
+row "train --resume (newest state.json corrupt)" $CLI train --data $D/data --out $D/r2 --iterations 8 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
 cp_run; for f in $D/r2/checkpoints/step_*/optim.safetensors; do : > $f; done
-row "train --resume (every optim.safetensors empty)" $CLI train --data $D/data --out $D/r2 --iterations 6 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
-row "train --resume (no checkpoint)" $CLI train --data $D/data --out $D/fresh --iterations 2 --keep-schedule --quiet $TINY --resume
+row "train --resume (every optim.safetensors empty)" $CLI train --data $D/data --out $D/r2 --iterations 8 --keep-schedule --quiet $TINY --set checkpoint_every=2 --resume
+row "train --resume (a new folder, no checkpoint: trains from step 0)" $CLI train --data $D/data --out $D/fresh --iterations 2 --keep-schedule --quiet $TINY --resume
 row_only "schedule|trained" "train --iterations 50 (sss3dgs preset)" $CLI train --data $D/data --out $D/short --preset sss3dgs --iterations 50 --quiet $TINY
 row_only "WARNING|Traceback|Warning" "eval (no LPIPS weights)" $CLI eval --run $D/run --data $D/data --max-images 2
 row "render --orbit 3 --video o.avi" $CLI render --run $D/run --out $D/o --orbit 3 --video o.avi
@@ -68,3 +68,10 @@ row "convert-free3d foreign.ckpt out" $CLI convert-free3d $D/foreign.ckpt $D/out
 head -c 300 $D/foreign.ckpt > $D/cut.ckpt
 row "convert-free3d cut.ckpt out (truncated)" $CLI convert-free3d $D/cut.ckpt $D/out
 row "tune --set lambda_mask=inf" $CLI tune --data $D/data --out $D/t --set lambda_mask=inf
+row "train --set densify.reset_every=0" $CLI train --data $D/data --out $D/x --set densify.reset_every=0
+cp -r $D/data $D/pm; $PY -c "
+import json; p='$D/pm/transforms_train.json'; d=json.load(open(p)); d['premultiplied_alpha']='yes'; json.dump(d, open(p,'w'))"
+row "info (premultiplied_alpha \"yes\", a string)" $CLI info --data $D/pm
+cp -r $D/data $D/ply; printf 'ply\nformat ascii 1.0\nelement vertex 8\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 0\n' > $D/ply/points3d.ply
+row "train (points3d.ply truncated)" $CLI train --data $D/ply --out $D/x --iterations 2 --keep-schedule --quiet $TINY
+row "tune --report-only --study diamond-ss (a study not in the storage)" $CLI tune --data $D/data --out $D/t2 --study diamond-ss --report-only
