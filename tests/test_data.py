@@ -22,7 +22,7 @@ from diamond_sss.data.conventions import (
     srgb_to_linear,
     unproject_pixels,
 )
-from diamond_sss.data.images import write_png
+from diamond_sss.data.images import load_rgba, to_srgb8, write_png
 from diamond_sss.utils.logs import reset_warnings
 
 
@@ -246,6 +246,21 @@ def test_declared_premultiplied_alpha_decides_for_every_image(tmp_path, declared
     assert float(rgb[2, 1, 0]) == pytest.approx(edge, abs=1e-6)
     assert float(rgb[3, 3, 0]) == pytest.approx(1.0)
     assert (float(rgb[0, 0, 0]) > 0) == bool(declared)
+
+
+def test_written_rgba_holds_no_colour_without_coverage(tmp_path):
+    """A premultiplied image with colour where its alpha rounds to 0 in 8 bits (a diffusion model's output): the
+    file stores no colour there, so the per-file guess reads it as premultiplied and keeps its edge pixels."""
+    rgb = torch.full((2, 2, 3), 0.25)
+    alpha = torch.tensor([[0.001, 0.5], [1.0, 0.0]])[..., None]
+    written = to_srgb8(rgb, alpha)
+    assert written[..., 3].tolist() == [[0, 128], [255, 0]]
+    assert written[0, 0, :3].tolist() == [0, 0, 0] and written[1, 1, :3].tolist() == [0, 0, 0]
+    assert written[0, 1, :3].tolist() == written[1, 0, :3].tolist() == [137] * 3  # sRGB of 0.25
+    loaded, mask = load_rgba(write_png(tmp_path / "image.png", written))
+    assert float(loaded[0, 1, 0]) == pytest.approx(0.25, abs=2e-3)  # kept, not multiplied by alpha 128/255
+    assert float(mask[0, 1, 0]) == pytest.approx(128 / 255) and float(loaded[0, 0].abs().sum()) == 0.0
+    assert to_srgb8(rgb).shape == (2, 2, 3)
 
 
 def test_premultiplied_alpha_must_be_a_boolean(tmp_path):

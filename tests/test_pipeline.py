@@ -6,6 +6,7 @@ import json
 from dataclasses import replace
 
 import imageio.v3 as iio
+import numpy as np
 import pytest
 import torch
 from tiny_models import TINY_NVS, TINY_RELIGHT
@@ -63,6 +64,11 @@ def test_write_capture_keeps_the_lattice(setup, tmp_path):
     assert torch.allclose(generated.viewmats, real.viewmats, atol=1e-5)
     assert torch.allclose(generated.intrinsics, real.intrinsics, atol=1e-4)
     assert torch.equal(generated.load(0).rgb, real.load(4).rgb)
+    assert json.loads(path.read_text())["premultiplied_alpha"] is True
+    rgba = np.full((real.height, real.width, 4), 255, np.uint8)
+    rgba[..., 3], rgba[0, 0, 3] = 128, 0  # colour without coverage at (0, 0): the per-file guess says straight
+    write_capture(tmp_path, "edge", real, [GeneratedImage(0, 0, write_png(tmp_path / "edge.png", rgba))])
+    assert float(OLATDataset(tmp_path, "edge").load(0).rgb[1, 1, 0]) == 1.0  # as written, not x alpha again
     outside = GeneratedImage(6, 0, picks[0].image_path)
     with pytest.raises(ValueError, match=r"view 6 / light 0 outside the lattice's 6 views x 3 lights"):
         write_capture(tmp_path, "bad", real, [outside])

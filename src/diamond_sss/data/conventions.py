@@ -17,7 +17,9 @@ Radiance
       premultiplied by alpha (``diamond-sss synth`` writes it: its alpha comes from a separate coverage pass,
       so RGB may be non-zero where alpha is 0); ``false`` says straight alpha (Blender's PNGs), multiplied by
       alpha on loading. Without the key each file is guessed: premultiplied when its RGB is black wherever its
-      alpha is 0, straight otherwise (a guess that can differ between the images of one capture).
+      alpha is 0, straight otherwise (a guess that can differ between the images of one capture). Generated
+      images and renders are written premultiplied with no colour where their 8-bit alpha is 0, and the
+      pipeline's captures of generated images declare true.
 
 Lights
     * Point lights, world-space position in scene units, RGB intensity (unitless multiplier).

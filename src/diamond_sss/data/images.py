@@ -149,11 +149,17 @@ def resize_area(image: Tensor, height: int, width: int) -> Tensor:
 
 
 def to_srgb8(linear_rgb: Tensor, alpha: Tensor | None = None) -> np.ndarray:
-    """Linear ``[H,W,3]`` (and optional alpha ``[H,W,1]``) -> uint8 sRGB(A) array."""
-    srgb = linear_to_srgb(linear_rgb.detach().float().cpu())
-    if alpha is not None:
-        srgb = torch.cat([srgb, alpha.detach().float().cpu().clamp(0, 1)], dim=-1)
-    return (srgb.numpy() * 255.0 + 0.5).astype(np.uint8)
+    """Linear ``[H,W,3]`` (and optional alpha ``[H,W,1]``) -> uint8 sRGB(A) array.
+
+    With ``alpha`` the file is premultiplied RGBA: colour is set to 0 wherever the stored 8-bit alpha is 0
+    (no coverage, no colour), so every RGBA file this package writes reads the same whether or not its
+    transforms file declares ``premultiplied_alpha`` (:func:`load_rgba`'s guess).
+    """
+    srgb8 = (linear_to_srgb(linear_rgb.detach().float().cpu()).numpy() * 255.0 + 0.5).astype(np.uint8)
+    if alpha is None:
+        return srgb8
+    alpha8 = (alpha.detach().float().cpu().clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+    return np.concatenate([np.where(alpha8 > 0, srgb8, 0).astype(np.uint8), alpha8], axis=-1)
 
 
 def write_png(path: str | os.PathLike, array: np.ndarray) -> Path:

@@ -45,7 +45,7 @@ def render_lattice_image(scene: RelightableScene, lattice: OLATDataset, view: in
 
 def load_generated(item: GeneratedImage, lattice: OLATDataset) -> tuple[torch.Tensor, torch.Tensor]:
     """Linear RGB and mask of a generated image, checked against the size of its lattice view."""
-    rgb, mask = load_rgba(item.image, item.mask)
+    rgb, mask = load_rgba(item.image, item.mask, premultiplied=True)
     camera = lattice.cameras[item.view]
     if (rgb.shape[1], rgb.shape[0]) != (camera.width, camera.height):
         raise ValueError(f"{item.image}: generated image is {rgb.shape[1]}x{rgb.shape[0]}, the lattice's view "

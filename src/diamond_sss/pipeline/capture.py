@@ -2,7 +2,8 @@
 
 The file declares every camera and light of the real lattice up front (top-level ``cameras`` / ``lights``),
 so its view and light indices are the real capture's, and lists the generated images per view (SSS-3DGS
-variant) with paths relative to the file's folder and a mask file for each image.
+variant) with paths relative to the file's folder and a mask file for each image. It declares
+``premultiplied_alpha: true``: generated images are written premultiplied (``diffusion/common/manifest.py``).
 """
 
 from __future__ import annotations
@@ -65,5 +66,6 @@ def write_capture(folder: Path, name: str, lattice: OLATDataset, images: list[Ge
             frame["mask_paths"] = [os.path.relpath(item.mask, folder) for item in items]
         frames.append(frame)
     fov_x = 2.0 * math.atan(0.5 * lattice.width / float(lattice.cameras[0].K[0, 0]))
-    payload = {"camera_angle_x": fov_x, "w": lattice.width, "h": lattice.height, **header, "frames": frames}
+    payload = {"camera_angle_x": fov_x, "w": lattice.width, "h": lattice.height, "premultiplied_alpha": True,
+               **header, "frames": frames}
     return atomic_write_json(folder / f"transforms_{name}.json", payload)

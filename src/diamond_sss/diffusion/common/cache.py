@@ -11,6 +11,10 @@ from typing import Any
 
 from diamond_sss.utils.io import sha256_json
 
+ENTRY_FORMAT = 2
+"""How an entry's files are encoded, hashed into every key so that a change never reuses older entries
+(2: RGBA files hold no colour where their alpha is 0, :func:`diamond_sss.data.images.to_srgb8`)."""
+
 
 class OutputCache:
     """Folders ``<root>/<key[:2]>/<key>`` holding the files generated for a key.
@@ -25,8 +29,8 @@ class OutputCache:
 
     @staticmethod
     def key(parts: Any) -> str:
-        """Hex SHA-256 of the canonical JSON of ``parts``."""
-        return sha256_json(parts)
+        """Hex SHA-256 of the canonical JSON of ``parts`` and :data:`ENTRY_FORMAT`."""
+        return sha256_json({"entry_format": ENTRY_FORMAT, "inputs": parts})
 
     def path(self, key: str) -> Path:
         return self.root / key[:2] / key

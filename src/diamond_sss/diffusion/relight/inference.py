@@ -139,7 +139,7 @@ def relight_view(
     results = []
     for light in target_lights:
         entry = cache.get(keys[light])
-        rgb, mask = load_rgba(entry / "image.png")
+        rgb, mask = load_rgba(entry / "image.png", premultiplied=True)
         results.append(
             RelitImage(view=view, light=light, rgb=rgb, mask=mask, entry=entry, cached=light not in misses)
         )
