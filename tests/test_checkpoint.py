@@ -4,11 +4,14 @@ import json
 import shutil
 
 import torch
+from accelerate import Accelerator, debug_launcher
+from accelerate.state import AcceleratorState
 
 from diamond_sss.diffusion.common.runtime import make_accelerator
 from diamond_sss.training.checkpoint import (
     checkpoint_folders,
     latest_accelerate_checkpoint,
+    load_accelerate_checkpoint,
     resume_checkpoint,
     save_accelerate_checkpoint,
     save_checkpoint,
@@ -58,3 +61,30 @@ def test_accelerate_checkpoints_of_both_paddings_are_ordered_by_step(tmp_path):
     assert latest_accelerate_checkpoint(tmp_path).name == "step_0000012"
     save_accelerate_checkpoint(accelerator, tmp_path, 13, keep=2)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["step_00000013", "step_0000012"]
+
+
+def _save_and_resume_each_process(root):
+    """In each of two processes: seed its own RNG, checkpoint, draw; scramble the RNG, resume, draw again."""
+    AcceleratorState._reset_state(True)  # forked from the test process: drop its single-process state
+    accelerator = Accelerator(cpu=True)
+    accelerator.prepare(torch.nn.Linear(2, 2))
+    torch.manual_seed(100 + accelerator.process_index)
+    folder = save_accelerate_checkpoint(accelerator, root, 1)
+    accelerator.wait_for_everyone()
+    drawn = torch.rand(3).tolist()
+    torch.manual_seed(0)
+    load_accelerate_checkpoint(accelerator, root / step_folder_name(1))
+    again = torch.rand(3).tolist()
+    (root / f"process_{accelerator.process_index}.json").write_text(
+        json.dumps({"drawn": drawn, "again": again, "folder": None if folder is None else folder.name}))
+
+
+def test_an_accelerate_checkpoint_resumes_the_random_state_of_every_process(tmp_path):
+    debug_launcher(_save_and_resume_each_process, args=(tmp_path,), num_processes=2)
+    results = [json.loads((tmp_path / f"process_{index}.json").read_text()) for index in (0, 1)]
+    assert [r["folder"] for r in results] == [step_folder_name(1), None]  # the main process publishes it
+    assert all(r["again"] == r["drawn"] for r in results)
+    assert results[0]["drawn"] != results[1]["drawn"]
+    assert sorted(p.name for p in (tmp_path / step_folder_name(1)).glob("random_states_*")) == [
+        "random_states_0.pkl", "random_states_1.pkl"]
+    assert not list(tmp_path.glob(".*.tmp"))

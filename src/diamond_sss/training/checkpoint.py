@@ -215,25 +215,30 @@ def save_accelerate_checkpoint(
 ) -> Path | None:
     """Save models, optimizers, schedulers, RNG states and registered objects as ``root/step_<step>``.
 
-    ``accelerator.save_state`` writes into a temporary folder that is renamed into place once complete,
-    then only the ``keep`` newest checkpoints are kept. ``extra`` (JSON) is stored as ``extra.json``.
-    Returns the folder on the main process, ``None`` elsewhere.
+    Every process calls ``accelerator.save_state`` into one temporary folder (each writes its own RNG state,
+    so a resumed multi-process run draws what it would have drawn), which the main process renames into place
+    once complete; then only the ``keep`` newest checkpoints are kept. ``extra`` (JSON) is stored as
+    ``extra.json``. Returns the folder on the main process, ``None`` elsewhere.
     """
-    accelerator.wait_for_everyone()
-    if not accelerator.is_main_process:
-        return None
     root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
     final = root / step_folder_name(step)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=root))
+    tmp = root / f".{final.name}.tmp"
+    if accelerator.is_main_process:
+        root.mkdir(parents=True, exist_ok=True)
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    accelerator.wait_for_everyone()
     try:
         accelerator.save_state(str(tmp), safe_serialization=True)
+        accelerator.wait_for_everyone()
+        if not accelerator.is_main_process:
+            return None
         atomic_write_json(tmp / "extra.json", {"step": step, **(extra or {})})
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)
     finally:
-        if tmp.exists():
+        if accelerator.is_main_process and tmp.exists():
             shutil.rmtree(tmp)
     for old in _checkpoints(root, "extra.json")[:-keep] if keep > 0 else []:
         shutil.rmtree(old)

@@ -87,11 +87,13 @@ class EMA:
 
 def save_ema_with_checkpoints(accelerator: Accelerator, ema: EMA) -> None:
     """Make every ``accelerator.save_state`` also write ``ema``'s state as :data:`EMA_FILE` (safetensors, atomically)
-    into the folder it saves, so the checkpoint holds it when that folder is published. accelerate's
-    ``register_for_checkpointing`` would store it as a pickle and load it back with ``weights_only=False``."""
+    into the folder it saves (from the main process: every process runs the hook), so the checkpoint holds it when
+    that folder is published. accelerate's ``register_for_checkpointing`` would store it as a pickle and load it
+    back with ``weights_only=False``."""
 
     def save(models: list, weights: list, output_dir: str) -> None:
-        atomic_save_safetensors(Path(output_dir) / EMA_FILE, ema.state_dict())
+        if accelerator.is_main_process:
+            atomic_save_safetensors(Path(output_dir) / EMA_FILE, ema.state_dict())
 
     accelerator.register_save_state_pre_hook(save)
 
