@@ -57,13 +57,15 @@ def test_a_render_equal_to_the_target_matches_it_over_a_background(dssim):
 def test_the_background_reaches_the_predicted_alpha():
     background = torch.tensor([0.8, 0.4, 0.2]).reshape(1, 1, 1, 3).repeat(2, 1, 1, 1)
     alpha = torch.full((2, 16, 16, 1), 0.5, requires_grad=True)
-    render, target, _ = _batch(alpha, background)
+    render, target, mask = _batch(alpha, background)
     cfg = make_config("diamond", overrides={**PHOTOMETRIC_ONLY, "lambda_dssim": 0.0})
     loss = image_objective(render, target, cfg, None)["photometric"]
     # |(rgb + 0.5 b) - (rgb + (1 - M) b)| = 0.5 b inside the mask and outside it alike
     torch.testing.assert_close(loss, 0.5 * background.mean())
     loss.backward()
-    assert alpha.grad is not None and (alpha.grad != 0).all()
+    # d/d alpha of the mean of |(M - alpha) b_c| over N = 2 * 16 * 16 * 3 values: -sum_c b_c / N inside the mask
+    # (M - alpha > 0), +sum_c b_c / N outside it: more alpha darkens the background where the target shows it
+    torch.testing.assert_close(alpha.grad, (1 - 2 * mask) * (0.8 + 0.4 + 0.2) / (2 * 16 * 16 * 3))
     plain_alpha = torch.full((2, 16, 16, 1), 0.5, requires_grad=True)
     render, target, _ = _batch(plain_alpha, None)
     assert not image_objective(render, target, cfg, None)["photometric"].requires_grad  # over black: no alpha

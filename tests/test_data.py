@@ -132,12 +132,19 @@ def test_batches_are_seeded_and_cover_each_epoch(tmp_path):
     assert next(resumed) == first[1]
 
 
-def test_cache_is_bounded(tmp_path):
+def test_cache_is_bounded_and_drops_the_least_recently_used(tmp_path):
     make_capture(tmp_path, views=3, lights=2, size=8)
     ds = OLATDataset(tmp_path, cache_images=2)
+    expected = OLATDataset(tmp_path, cache_images=0).load(4)
     for i in range(6):
         ds.load(i)
-    assert len(ds._cache.entries) == 2
+    assert list(ds._cache.entries) == [4, 5]
+    ds.load(4)  # a hit makes 4 the most recently used: the next miss drops 5, not 4
+    ds.load(0)
+    assert list(ds._cache.entries) == [4, 0]
+    ds.observations[4].image_path.unlink()  # a hit reads nothing from the disk and serves the decoded image
+    hit = ds.load(4)
+    assert torch.equal(hit.rgb, expected.rgb) and torch.equal(hit.mask, expected.mask)
 
 
 def test_loading_writes_nothing_into_the_data_folder(tmp_path):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import torch
+from gsplat.strategy import DefaultStrategy
 
 from diamond_sss.training.densify import CappedStrategy
 
@@ -23,7 +24,7 @@ def _gaussians(opacity_logits: list[float]) -> tuple[torch.nn.ParameterDict, dic
     return params, optimizers
 
 
-def _refine(strategy: CappedStrategy, params, optimizers, state, step: int) -> None:
+def _refine(strategy: DefaultStrategy, params, optimizers, state, step: int) -> None:
     """One refinement step in which every Gaussian was seen with a large screen-space gradient."""
     n = len(params["means"])
     means2d = torch.zeros(1, n, 2, requires_grad=True)
@@ -58,9 +59,16 @@ def test_refinements_never_pass_the_cap_and_keep_pruning_at_it():
 
 
 def test_under_the_cap_it_grows_as_gsplat_does():
-    strategy = CappedStrategy(max_count=100, grow_grad2d=1e-3, refine_start_iter=0, refine_every=1,
-                              refine_stop_iter=100, reset_every=1000, pause_refine_after_reset=0, verbose=False)
-    params, optimizers = _gaussians([0.0] * 6)
-    state = strategy.initialize_state(scene_scale=1.0)
-    _refine(strategy, params, optimizers, state, step=1)
-    assert len(params["means"]) == 12
+    settings = {"grow_grad2d": 1e-3, "refine_start_iter": 0, "refine_every": 1, "refine_stop_iter": 100,
+                "reset_every": 1000, "pause_refine_after_reset": 0, "verbose": False}
+    grown = []
+    for strategy in (CappedStrategy(max_count=100, **settings), DefaultStrategy(**settings)):
+        params, optimizers = _gaussians([0.0] * 6)
+        _refine(strategy, params, optimizers, strategy.initialize_state(scene_scale=1.0), step=1)
+        grown.append((params, optimizers))
+    (params, optimizers), (reference, reference_optimizers) = grown
+    assert len(params["means"]) == 12  # every small Gaussian duplicated once, in place, none pruned
+    for name, param in params.items():
+        assert torch.equal(param[6:], param[:6]) and torch.equal(param, reference[name]), name
+        moments, expected = optimizers[name].state[param], reference_optimizers[name].state[reference[name]]
+        assert torch.equal(moments["exp_avg"], expected["exp_avg"])

@@ -24,6 +24,7 @@ from diamond_sss.losses import (
     sample_foreground_pixels,
     sample_view_pairs,
 )
+from diamond_sss.rendering import rasterize
 
 SIZE = 32
 FOV = math.radians(60.0)
@@ -366,7 +367,6 @@ def test_config_validation():
 
 
 def test_gaussian_outside_target_silhouette_is_pulled_back_inside():
-    rendering = pytest.importorskip("diamond_sss.rendering")
     src = tuple(x.to(torch.float32) for x in camera((0.0, 0.0, 3.0), (0.0, 0.0, 0.0)))
     tgt = tuple(x.to(torch.float32) for x in camera((3.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
     # Target silhouette: a soft disc around the projection of the origin (where the object is).
@@ -388,7 +388,7 @@ def test_gaussian_outside_target_silhouette_is_pulled_back_inside():
     before = silhouette_at_projection()
     losses = []
     for _ in range(6):
-        out = rendering.rasterize(
+        out = rasterize(
             mean,
             quats,
             scales,

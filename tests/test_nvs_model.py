@@ -117,7 +117,14 @@ def test_harmonic_embedding_layout_and_ray_embedding_channels():
         -1.0,
     ]
     torch.testing.assert_close(emb[0], torch.tensor(expected))
-    assert ray_embedding(camera(0.2), camera(0.0), intrinsics_from_fov(0.6, 4, 4), 4, 4).shape == (78, 4, 4)
+    K = intrinsics_from_fov(0.6, 4, 4)
+    rays = plucker_rays(camera(0.2), camera(0.0), K, 4, 4)
+    embedded = ray_embedding(camera(0.2), camera(0.0), K, 4, 4)
+    # along the channels: sin(2^k r_c) at 6 c + k for the 6 Plucker coordinates and 6 frequencies, the cosines
+    # after them, the rays themselves last (6 * (2 * 6 + 1) = 78 channels)
+    phase = (rays[:, None] * 2.0 ** torch.arange(6.0)[None, :, None, None]).reshape(36, 4, 4)
+    assert embedded.shape == (78, 4, 4)
+    torch.testing.assert_close(embedded, torch.cat([phase.sin(), phase.cos(), rays]))
 
 
 def test_relative_pose_and_view_angle_of_known_cameras():
@@ -211,9 +218,11 @@ def test_latent_space_round_trip_uses_the_vae_scale():
         z = model.encode(rgba)
         expected = vae.encode(rgba[:, :3] * 2 - 1).latent_dist.mode() * 0.18215
         out = model.decode(z)
+        colour = ((vae.decode(z / 0.18215).sample + 1) / 2).clamp(0, 1)
     assert z.shape == (2, 4, 4, 4)
     torch.testing.assert_close(z, expected)
-    assert out.shape == (2, 4, 32, 32)
+    # a 3-channel VAE: colour from the unscaled latents, alpha where any channel exceeds 1/255
+    torch.testing.assert_close(out, torch.cat([colour, (colour.amax(1, keepdim=True) > 1 / 255).float()], 1))
 
 
 def test_noise_schedule_is_the_ldm_linear_schedule():

@@ -115,11 +115,17 @@ def test_light_code_reaches_the_output():
 
 
 def test_source_light_option():
-    model = tiny_model(use_source_light=True, shading_hint=False, residual=False).eval()
-    x, t, cond, code, _ = random_inputs()
-    assert model(x, t, cond, code, code).shape == x.shape
+    """With the option the source light's code reaches the output; without it (and with no hint) it is ignored."""
+    x, t, cond, code, src = random_inputs()
+    outputs = {}
+    for use in (True, False):
+        model = tiny_model(use_source_light=use, shading_hint=False, residual=False).eval()
+        with torch.no_grad():
+            outputs[use] = model(x, t, cond, code, src), model(x, t, cond, code, src + 1.0)
+    assert outputs[True][0].shape == x.shape and not torch.allclose(*outputs[True])
+    assert torch.equal(*outputs[False])
     with pytest.raises(ValueError, match="source light"):
-        model(x, t, cond, code)
+        tiny_model(use_source_light=True, shading_hint=False, residual=False)(x, t, cond, code)
 
 
 def test_bad_inputs_have_clear_errors(tmp_path):

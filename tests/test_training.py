@@ -24,7 +24,7 @@ from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.schedules import exponential_lr, linear_warmup, step_decay
 from diamond_sss.training.trainer import ImageSource, Trainer
-from diamond_sss.utils.io import load_safetensors
+from diamond_sss.utils.io import atomic_save_safetensors, load_safetensors
 
 TINY = {
     "num_gaussians": 300, "batch_size": 2, "lambda_lpips": 0.0, "raytrace_gaussians": 64, "raytrace_every": 2,
@@ -103,16 +103,26 @@ def test_exponential_lr_schedule():
     assert linear_warmup(0, 0) == 1.0
 
 
-def test_optimizer_state_round_trip():
+def test_optimizer_state_round_trip(tmp_path):
     param = torch.nn.Parameter(torch.randn(5, 3))
     optimizer = torch.optim.Adam([param], lr=0.1)
     param.grad = torch.randn(5, 3)
     optimizer.step()
     tensors, meta = optimizer_to_tensors("means", optimizer)
-    restored_opt = torch.optim.Adam([torch.nn.Parameter(param.detach().clone())], lr=0.5)
-    restored_opt.load_state_dict(optimizer_from_tensors("means", tensors, json.loads(json.dumps(meta))))
+    atomic_save_safetensors(tmp_path / "optimizer.safetensors", tensors)  # through the file, as a checkpoint
+    restored = torch.nn.Parameter(param.detach().clone())
+    restored_opt = torch.optim.Adam([restored], lr=0.5)
+    restored_opt.load_state_dict(optimizer_from_tensors("means", load_safetensors(tmp_path / "optimizer.safetensors"),
+                                                        json.loads(json.dumps(meta))))
     assert restored_opt.param_groups[0]["lr"] == 0.1
-    assert torch.equal(restored_opt.state_dict()["state"][0]["exp_avg"], optimizer.state_dict()["state"][0]["exp_avg"])
+    for key in ("step", "exp_avg", "exp_avg_sq"):
+        assert torch.equal(restored_opt.state[restored][key], optimizer.state[param][key]), key
+    # exact resume: the next step of the restored optimizer is the original's, to the bit (Adam's bias
+    # correction reads the step count, its update both moments)
+    param.grad = restored.grad = torch.randn(5, 3)
+    optimizer.step()
+    restored_opt.step()
+    assert torch.equal(restored, param)
 
 
 class _Killed(RuntimeError):

@@ -92,7 +92,7 @@ def test_frame_is_the_renderers_image_and_channels_differ():
 
 
 def test_server_builds_its_gui_and_follows_it():
-    viser = pytest.importorskip("viser")
+    viser = pytest.importorskip("viser", reason="needs viser (the 'viewer' extra)")
     from diamond_sss.viewer.server import SceneViewer
 
     with socket.socket() as probe:
@@ -130,7 +130,7 @@ def test_loopback_hosts_and_urls():
 
 @pytest.mark.parametrize("host, warned", [(None, False), ("0.0.0.0", True)])
 def test_serve_binds_loopback_by_default_and_warns_when_exposed(monkeypatch, capsys, caplog, host, warned):
-    pytest.importorskip("viser")
+    pytest.importorskip("viser", reason="needs viser (the 'viewer' extra)")
     from diamond_sss.training import run_folder
     from diamond_sss.viewer import server as server_module
 
