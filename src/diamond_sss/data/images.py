@@ -152,8 +152,8 @@ def to_srgb8(linear_rgb: Tensor, alpha: Tensor | None = None) -> np.ndarray:
     """Linear ``[H,W,3]`` (and optional alpha ``[H,W,1]``) -> uint8 sRGB(A) array.
 
     With ``alpha`` the file is premultiplied RGBA: colour is set to 0 wherever the stored 8-bit alpha is 0
-    (no coverage, no colour), so every RGBA file this package writes reads the same whether or not its
-    transforms file declares ``premultiplied_alpha`` (:func:`load_rgba`'s guess).
+    (no coverage, no colour), so a file written here (generated images, renders) reads the same whether or not
+    its transforms file declares ``premultiplied_alpha`` (:func:`load_rgba`'s guess).
     """
     srgb8 = (linear_to_srgb(linear_rgb.detach().float().cpu()).numpy() * 255.0 + 0.5).astype(np.uint8)
     if alpha is None:
