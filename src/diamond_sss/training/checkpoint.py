@@ -76,7 +76,10 @@ class Checkpoint:
 
 
 def optimizer_to_tensors(name: str, optimizer: torch.optim.Optimizer) -> tuple[dict[str, Tensor], dict]:
-    """Split ``optimizer.state_dict()`` into tensors (for safetensors) and JSON-able hyperparameters."""
+    """Split ``optimizer.state_dict()`` into tensors (for safetensors) and JSON-able hyperparameters.
+
+    The tensors are the optimizer's own, as ``state_dict()`` returns them: write them to a file; loading them into
+    another optimizer in the same process would share its moments."""
     state = optimizer.state_dict()
     tensors: dict[str, Tensor] = {}
     scalars: dict[str, dict] = {}
