@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -182,6 +181,18 @@ def recorded(run: Path) -> tuple[Path, dict] | None:
                                                                           "real_share")}}
 
 
+def run_minutes(run: Path) -> float | None:
+    """The minutes ``run`` recorded: a training run's training (``train_summary.json``), a pipeline folder's stages
+    (``pipeline.json``; a reused preliminary reconstruction records 0 s); ``None`` when it recorded none."""
+    summary, manifest = run / "train_summary.json", run / "pipeline.json"
+    if summary.is_file():
+        return json.loads(summary.read_text())["seconds"] / 60
+    if manifest.is_file():
+        stages = json.loads(manifest.read_text()).get("stages", {})
+        return sum(stage.get("seconds", 0.0) for stage in stages.values()) / 60
+    return None
+
+
 def mean_rows(rows: list[dict]) -> list[dict]:
     """One row per (regime, method): the mean of each metric over the objects."""
     groups: dict[tuple[str, str], list[dict]] = {}
@@ -282,7 +293,6 @@ def main() -> None:
         for regime, method, share, power in jobs:
             name = variant_name(method, share, power, args.tag)
             runs = args.out / data.name / (regime_slug(regime) + (f"_seed{args.seed}" if args.seed else ""))
-            started = time.perf_counter()
             if args.collect_only:
                 if (found := recorded(runs / name)) is None:
                     continue
@@ -292,7 +302,7 @@ def main() -> None:
                                             pipeline_set, args.tag, args.seed)
             finals[data.name, regime, name] = final
             rows.append({"object": data.name, "regime": regime, "method": name, "run": str(runs / name),
-                         "minutes": (time.perf_counter() - started) / 60,
+                         "minutes": run_minutes(runs / name),
                          **{k: metrics.get(k) for k in (*METRICS, "real_images", "synthetic_images", "real_share")}})
             print(json.dumps(rows[-1]), flush=True)
     args.results.mkdir(parents=True, exist_ok=True)

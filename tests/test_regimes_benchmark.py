@@ -101,6 +101,19 @@ def test_recorded_reads_a_finished_pipeline_and_skips_an_unfinished_one(tmp_path
                                                   "synthetic_images": 208, "real_share": 0.1261}
 
 
+def test_a_rows_minutes_are_what_its_run_recorded_not_the_time_to_collect_it(tmp_path):
+    training, pipeline = tmp_path / "sss3dgs", tmp_path / "full"
+    training.mkdir()
+    pipeline.mkdir()
+    assert regimes.run_minutes(training) is None
+    (training / "train_summary.json").write_text(json.dumps({"steps": 1000, "seconds": 273.6}))
+    stages = {"prelim": {"seconds": 0.0, "reused": str(training)}, "nvs": {"seconds": 4.8},
+              "final": {"seconds": 113.2, "real_images": 30}, "eval": {"seconds": 3.0, "psnr": 26.3}}
+    (pipeline / "pipeline.json").write_text(json.dumps({"stages": stages}))
+    assert regimes.run_minutes(training) == pytest.approx(273.6 / 60)
+    assert regimes.run_minutes(pipeline) == pytest.approx(121.0 / 60)
+
+
 def test_a_bad_pipeline_setting_stops_before_any_training(tmp_path):
     with pytest.raises(ValueError, match=r"unknown stage\(s\) \['nvx'\]"):
         regimes.run_method("full", tmp_path / "capture", tmp_path / "runs", "views=2,lights=1", 10,
