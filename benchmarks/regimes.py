@@ -186,7 +186,8 @@ def run_minutes(run: Path) -> float | None:
     (``pipeline.json``; a reused preliminary reconstruction records 0 s); ``None`` when it recorded none."""
     summary, manifest = run / "train_summary.json", run / "pipeline.json"
     if summary.is_file():
-        return json.loads(summary.read_text())["seconds"] / 60
+        seconds = json.loads(summary.read_text()).get("seconds")
+        return None if seconds is None else seconds / 60
     if manifest.is_file():
         stages = json.loads(manifest.read_text()).get("stages", {})
         return sum(stage.get("seconds", 0.0) for stage in stages.values()) / 60
