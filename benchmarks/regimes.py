@@ -45,6 +45,7 @@ from diamond_sss.training.config import short_schedule
 from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import load_scene, move_aside_if_trained_otherwise
+from diamond_sss.utils.io import read_json
 
 RESULTS = Path(__file__).resolve().parent / "results" / "regimes"
 RUNS = Path("outputs") / "benchmarks" / "regimes_counts"
@@ -186,10 +187,10 @@ def run_minutes(run: Path) -> float | None:
     (``pipeline.json``; a reused preliminary reconstruction records 0 s); ``None`` when it recorded none."""
     summary, manifest = run / "train_summary.json", run / "pipeline.json"
     if summary.is_file():
-        seconds = json.loads(summary.read_text()).get("seconds")
+        seconds = read_json(summary).get("seconds")
         return None if seconds is None else seconds / 60
     if manifest.is_file():
-        stages = json.loads(manifest.read_text()).get("stages", {})
+        stages = read_json(manifest).get("stages", {})
         return sum(stage.get("seconds", 0.0) for stage in stages.values()) / 60
     return None
 

@@ -9,6 +9,8 @@ import sys
 import pytest
 from repo_scripts import load_script
 
+from diamond_sss.data.errors import DataError
+
 regimes = load_script("benchmarks/regimes.py", "regimes_benchmark")
 
 
@@ -112,6 +114,9 @@ def test_a_rows_minutes_are_what_its_run_recorded_not_the_time_to_collect_it(tmp
     (pipeline / "pipeline.json").write_text(json.dumps({"stages": stages}))
     assert regimes.run_minutes(training) == pytest.approx(273.6 / 60)
     assert regimes.run_minutes(pipeline) == pytest.approx(121.0 / 60)
+    (training / "train_summary.json").write_text("{not json")
+    with pytest.raises(DataError, match="train_summary.json: damaged or invalid JSON"):
+        regimes.run_minutes(training)
 
 
 def test_a_bad_pipeline_setting_stops_before_any_training(tmp_path):
