@@ -19,12 +19,30 @@ from diamond_sss.training.checkpoint import (
 )
 
 
-def _save(run_dir, step):
+def _save(run_dir, step, **kwargs):
     weight = torch.nn.Parameter(torch.full((2,), float(step)))
     optimizer = torch.optim.Adam([weight], lr=0.1)
     weight.sum().backward()
     optimizer.step()
-    return save_checkpoint(run_dir, step, {"w": weight.detach()}, {"w": optimizer}, {}, {"note": step})
+    return save_checkpoint(run_dir, step, {"w": weight.detach()}, {"w": optimizer}, {}, {"note": step}, **kwargs)
+
+
+def _step_folders(run_dir):
+    return sorted(p.name for p in (run_dir / "checkpoints").iterdir() if p.is_dir())
+
+
+def test_trainer_checkpoints_keep_the_newest_two_by_default_any_number_or_every_one(tmp_path):
+    for step in (1, 2, 3):
+        _save(tmp_path / "default", step)
+    assert _step_folders(tmp_path / "default") == ["step_00000002", "step_00000003"]
+    for step in (1, 2, 3, 4):
+        _save(tmp_path / "three", step, keep=3)
+    assert _step_folders(tmp_path / "three") == ["step_00000002", "step_00000003", "step_00000004"]
+    for step in (1, 2, 3, 4):
+        _save(tmp_path / "every", step, keep=0)
+    assert _step_folders(tmp_path / "every") == [f"step_0000000{step}" for step in (1, 2, 3, 4)]
+    loaded = resume_checkpoint(tmp_path / "every")[1]
+    assert loaded.step == 4 and torch.equal(loaded.scene["w"], torch.full((2,), 4.0) - 0.1)
 
 
 def _rename_to_seven_digits(folder):

@@ -159,6 +159,20 @@ def test_resume_after_a_kill_matches_an_uninterrupted_run(capture, tmp_path):
     assert [h["step"] for h in history] == [1, 2, 3, 4, 5, 6]
 
 
+def test_every_checkpoint_is_kept_on_request_and_holds_its_steps_scene(capture, tmp_path):
+    cfg = make_config("diamond", overrides={**TINY, "iterations": 6, "checkpoint_every": 2, "keep_checkpoints": 0})
+    Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path, show_progress=False).run()
+    folders = sorted(p.name for p in (tmp_path / "checkpoints").iterdir() if p.is_dir())
+    assert folders == ["step_00000002", "step_00000004"]  # the last step writes the model, not a checkpoint
+    shorter = make_config("diamond", overrides={**TINY, "iterations": 4})
+    Trainer(shorter, [ImageSource(OLATDataset(capture))], tmp_path / "four", show_progress=False).run()
+    step4 = load_safetensors(tmp_path / "checkpoints" / "step_00000004" / "scene.safetensors")
+    model = load_safetensors(tmp_path / "four" / "model.safetensors")  # the same steps, stopped at 4
+    assert step4.keys() == model.keys() and all(torch.equal(step4[key], model[key]) for key in model)
+    with pytest.raises(ValueError, match="config key 'runtime.keep_checkpoints' must be >= 0, got -1"):
+        make_config(sets=["keep_checkpoints=-1"])
+
+
 def test_reused_light_maps_resume_exactly_and_render_each_light_once_per_window(capture, tmp_path, monkeypatch):
     size = 12  # no other pass renders at this size
     light_map_renders = []

@@ -45,7 +45,6 @@ logger = logging.getLogger(__name__)
 if TYPE_CHECKING:
     from accelerate import Accelerator
 
-KEEP_CHECKPOINTS = 2
 _STEP_DIR = re.compile(r"^step_(\d+)$")
 
 
@@ -109,8 +108,8 @@ def optimizer_from_tensors(name: str, tensors: dict[str, Tensor], meta: dict) ->
 
 def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
                     optimizers: dict[str, torch.optim.Optimizer], strategy_state: dict, extra: dict,
-                    average: dict[str, Tensor] | None = None) -> Path:
-    """Write checkpoint ``step`` atomically and keep the newest :data:`KEEP_CHECKPOINTS` (``average``: the running
+                    average: dict[str, Tensor] | None = None, keep: int = 2) -> Path:
+    """Write checkpoint ``step`` atomically and keep the newest ``keep`` (0: every one; ``average``: the running
     mean of the scene tensors, when there is one)."""
     root = Path(run_dir) / "checkpoints"
     root.mkdir(parents=True, exist_ok=True)
@@ -142,7 +141,7 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
         if tmp.exists():
             shutil.rmtree(tmp)
     atomic_write_json(root / "latest.json", {"step": step, "dir": name})
-    for old in _checkpoints(root, "state.json")[:-KEEP_CHECKPOINTS]:
+    for old in _checkpoints(root, "state.json")[:-keep] if keep > 0 else []:
         shutil.rmtree(old)
     return final
 

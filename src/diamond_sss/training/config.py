@@ -196,6 +196,7 @@ class Runtime:
     cpu_threads: int = _key(1, "torch intra-op threads on CPU (0: torch's default)")
     downscale: float = _key(1.0, "divide the image size by this factor")
     checkpoint_every: int = _key(500, "steps between checkpoints")
+    keep_checkpoints: int = _key(2, "newest checkpoints kept on disk (0: every one, e.g. to score each step's model)")
     log_every: int = _key(25, "steps between scalar logs")
     image_log_every: int = _key(500, "steps between TensorBoard image logs")
     lpips_weights: str = _key("", "LPIPS (VGG) weights in safetensors (empty: $DIAMOND_SSS_LPIPS_WEIGHTS)")

@@ -143,8 +143,9 @@ POSITIVE_KEYS = ("schedule.iterations", "schedule.batch_size", "gaussians.count"
                  "multiview.pixels_per_pair", "multiview.nearest_k")
 """Sizes and step periods that have no 'off' value (a loss or a process is turned off by its weight or flag)."""
 
-NON_NEGATIVE_INT_KEYS = ("shading.sss_light_depth", "shading.sss_position_freqs", "lr.sss_warmup_steps", "lr.position_delay_steps")
-"""Sizes and step counts where 0 means off."""
+NON_NEGATIVE_INT_KEYS = ("shading.sss_light_depth", "shading.sss_position_freqs", "lr.sss_warmup_steps", "lr.position_delay_steps",
+                         "runtime.keep_checkpoints")
+"""Sizes and step counts where 0 means off (for ``runtime.keep_checkpoints``: no limit)."""
 
 CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"), "gaussians.hull_masks": ("real", "all"),
            "losses.photometric_space": ("linear", "srgb"),

@@ -25,8 +25,8 @@ def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[Relig
     return read_scene(path, cfg.shading, device), cfg
 
 
-RESUMABLE_KEYS = frozenset({"iterations", "log_every", "checkpoint_every", "image_log_every", "device",
-                            "cpu_threads"})
+RESUMABLE_KEYS = frozenset({"iterations", "log_every", "checkpoint_every", "keep_checkpoints", "image_log_every",
+                            "device", "cpu_threads"})
 """Settings a resumed run may change: its length, logging and where it runs; any other change would continue a
 model with settings it was not trained with (or fail to load it, e.g. another MLP width)."""
 

@@ -477,7 +477,7 @@ class Trainer:
                 save_checkpoint(self.run_dir, done, scene_tensors(scene), optimizers, strategy_state,
                                 {"init_source": self.init_source, "history": history,
                                  "seconds": time.perf_counter() - started, "averaged_steps": average.count},
-                                average=average.mean)
+                                average=average.mean, keep=cfg.runtime.keep_checkpoints)
                 if self.light_maps is not None:  # a run resumed here starts with no light maps either
                     self.light_maps.clear()
             if last:
