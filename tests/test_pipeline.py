@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import replace
 
 import imageio.v3 as iio
@@ -198,6 +199,34 @@ def test_prelim_reuses_a_finished_reconstruction(setup, tmp_path):
     with pytest.raises(ValueError, match=r"none/model.safetensors is missing"):
         run_pipeline(data, tmp_path / "third", regime="views=2,lights=1", overrides=TRAIN, config=missing,
                      show_progress=False)
+
+
+def test_a_preliminary_run_is_reused_after_its_capture_moved_but_not_with_other_images(setup, tmp_path):
+    data, _, relight, cache = setup
+    base = tmp_path / "base"
+    train_run(data, base, regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
+    moved = shutil.copytree(data, tmp_path / "moved")
+    cfg = PipelineConfig(augment=("relight",), relight_lights=1, relight_model=str(relight), relight_steps=1,
+                         relight_samples=1, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache),
+                         prelim_run=str(base))
+    result = run_pipeline(moved, tmp_path / "run", regime="views=2,lights=1", overrides=TRAIN, config=cfg,
+                          show_progress=False)
+    assert json.loads((tmp_path / "run" / "pipeline.json").read_text())["stages"]["prelim"]["reused"] == str(base)
+    assert result["real_images"] == 2
+    used = OLATDataset(moved).observations[json.loads((base / "regime.json").read_text())["observations"][0]]
+    image = iio.imread(used.image_path)
+    image[0, 0, 0] ^= 1  # one bit of one of the run's images
+    iio.imwrite(used.image_path, image)
+    with pytest.raises(ValueError, match=r"base/data.json records data .*: the images differ"):
+        run_pipeline(moved, tmp_path / "other", regime="views=2,lights=1", overrides=TRAIN, config=cfg,
+                     show_progress=False)
+    record = json.loads((base / "data.json").read_text())
+    (base / "data.json").write_text(json.dumps({k: v for k, v in record.items() if k != "content_sha256"}))
+    with pytest.raises(ValueError, match=r"records no content digest"):  # a run trained before the digest
+        run_pipeline(moved, tmp_path / "older", regime="views=2,lights=1", overrides=TRAIN, config=cfg,
+                     show_progress=False)
+    assert run_pipeline(data, tmp_path / "in_place", regime="views=2,lights=1", overrides=TRAIN, config=cfg,
+                        show_progress=False)["real_images"] == 2  # at its recorded path it needs no digest
 
 
 def test_a_run_with_other_inputs_is_moved_aside_not_deleted(tmp_path):

@@ -35,6 +35,7 @@ from diamond_sss.data.transforms import (
     transforms_path,
 )
 from diamond_sss.errors import DataError, data_error
+from diamond_sss.utils.io import sha256_file, sha256_json
 from diamond_sss.utils.logs import warn_once
 
 logger = logging.getLogger(__name__)
@@ -277,6 +278,13 @@ class OLATDataset:
         clone.observations = [self.observations[int(i)] for i in observation_indices]
         clone._cache = _ImageCache(self._cache.capacity)
         return clone
+
+    def content_hash(self, observation_indices: Sequence[int]) -> str:
+        """SHA-256 of this split's transforms file and of the image (and mask) files of ``observation_indices``:
+        what a reconstruction trained on them saw, wherever the capture folder lies."""
+        files = [[sha256_file(obs.image_path), sha256_file(obs.mask_path) if obs.mask_path else None]
+                 for obs in (self.observations[int(i)] for i in observation_indices)]
+        return sha256_json({"transforms": sha256_file(self.json_path), "images": files})
 
     def batch_indices(self, step: int, batch_size: int, seed: int) -> list[int]:
         """Observation indices of training step ``step``: seeded epochs of random permutations.

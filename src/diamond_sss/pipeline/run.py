@@ -29,6 +29,7 @@ the regime: n / (n + ``generated_as_real``) for n real images.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -57,6 +58,8 @@ from diamond_sss.utils.io import atomic_write_json, move_aside, sha256_file, sha
 
 if TYPE_CHECKING:
     from diamond_sss.diffusion.geometry import GeometrySource
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -197,21 +200,28 @@ def _model_hash(stage: str, folder: str | Path) -> str:
     return files_hash(folder)
 
 
-def check_prelim_run(run: Path, data: Path, split: str, observations: list[int]) -> Path:
-    """``run`` when it is a finished reconstruction of exactly ``observations`` of ``data`` [``split``], else an
-    error naming the file that differs."""
+def check_prelim_run(run: Path, real: OLATDataset, observations: list[int]) -> Path:
+    """``run`` when it is a finished reconstruction of exactly ``observations`` of capture ``real`` (recorded at its
+    path, or at another path with the same content digest: a moved capture), else an error naming the file that
+    differs."""
     run = Path(run)
     model = run / "model.safetensors"
     if not model.is_file():
         raise ValueError(f"prelim_run {run}: no finished reconstruction ({model} is missing)")
     recorded = read_manifest(run / "data.json")
-    if recorded.get("data") != str(Path(data).resolve()) or recorded.get("split") != split:
+    moved = recorded.get("data") != str(real.root)
+    other_split = recorded.get("split") != real.split
+    if other_split or (moved and recorded.get("content_sha256") != real.content_hash(observations)):
+        why = ("" if other_split else ": the images differ" if "content_sha256" in recorded else
+               " (it records no content digest, by which a moved capture is recognised: trained before they were)")
         raise ValueError(f"prelim_run {run}: {run / 'data.json'} records data {recorded.get('data')!r} "
-                         f"[{recorded.get('split')}], expected {str(Path(data).resolve())!r} [{split}]")
+                         f"[{recorded.get('split')}], expected {str(real.root)!r} [{real.split}]{why}")
     used = read_manifest(run / "regime.json").get("observations")
     if used != observations:
         raise ValueError(f"prelim_run {run}: {run / 'regime.json'} lists other images ({used}) than the regime's "
                          f"real images ({observations})")
+    if moved:
+        logger.info("prelim_run %s: trained on %s, the same images as %s", run, recorded.get("data"), real.root)
     return run
 
 
@@ -340,7 +350,7 @@ def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, 
     }
     prelim_dir = out / "prelim"
     if cfg.prelim_run and cfg.augment:
-        prelim_dir = check_prelim_run(Path(cfg.prelim_run), data, split, selection.observations)
+        prelim_dir = check_prelim_run(Path(cfg.prelim_run), real, selection.observations)
         inputs["prelim_model_hash"] = sha256_file(prelim_dir / "model.safetensors")
     center = real.bounds.center
     ctx = PipelineContext(data, out, split, regime, preset, overrides, prelim_preset, prelim_overrides, seed, cfg,

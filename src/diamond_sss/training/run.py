@@ -20,7 +20,8 @@ def train_run(data: Path, out: Path, *, split: str = "train", regime: str = "all
     """Resolve the config, select the regime's images, train, and record everything in ``out``.
 
     The run folder records ``config.json`` (resolved), ``regime.json`` (the chosen views, lights and
-    images), ``data.json`` (where the data came from) and, when done, ``model.safetensors``. ``on_step`` is
+    images), ``data.json`` (where the data came from, and the digest of the images it trained on:
+    :meth:`~diamond_sss.data.dataset.OLATDataset.content_hash`) and, when done, ``model.safetensors``. ``on_step`` is
     called after every step (the trainer's :data:`~diamond_sss.training.trainer.StepCallback`).
     """
     cfg = make_config(preset, overrides=overrides, config_file=config_file, sets=sets)
@@ -30,7 +31,8 @@ def train_run(data: Path, out: Path, *, split: str = "train", regime: str = "all
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "regime.json", selection.to_json())
     atomic_write_json(out / "data.json", {"data": str(Path(data).resolve()), "split": split, "preset": preset,
-                                          "regime": regime})
+                                          "regime": regime,
+                                          "content_sha256": dataset.content_hash(selection.observations)})
     sources = [ImageSource(dataset.subset(selection.observations), 1.0), *extra_sources]
     trainer = Trainer(cfg, sources, out, show_progress=show_progress)
     return trainer.run(resume=resume, on_step=on_step)
