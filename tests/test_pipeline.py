@@ -15,7 +15,7 @@ from tiny_models import TINY_NVS, TINY_RELIGHT
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.data.conventions import linear_to_srgb
-from diamond_sss.data.images import to_srgb8, write_png
+from diamond_sss.data.images import resize_area, to_srgb8, write_png
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.diffusion.relight.model import RelightDiffusion
@@ -33,8 +33,8 @@ from diamond_sss.pipeline.run import (
     spread_subset,
     target_real_share,
 )
+from diamond_sss.runs.folder import load_scene
 from diamond_sss.training.run import train_run
-from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.trainer import ImageSource
 from diamond_sss.utils.io import sha256_file, sha256_json
 
@@ -115,9 +115,13 @@ def test_render_errors_against_the_preliminary_reconstruction(setup, tmp_path):
     srgb = linear_to_srgb(radiance.clamp_min(0.0))
     assert errors[0] < 2.0 / 255.0  # 8-bit quantisation only
     assert errors[1] == pytest.approx(float((srgb * alpha).sum() / (3 * alpha.sum())), abs=2.0 / 255.0)
-    with pytest.raises(ValueError, match="generated image is 8x8"):
-        small = write_png(tmp_path / "small.png", to_srgb8(radiance[:8, :8], alpha[:8, :8]))
-        render_errors(scene, real, [GeneratedImage(3, 2, small)])
+    # an image made at 8x8 (a diffusion model's resolution) against the render area-downsampled to 8x8
+    small = write_png(tmp_path / "small.png", to_srgb8(resize_area(radiance, 8, 8), resize_area(alpha, 8, 8)))
+    assert render_errors(scene, real, [GeneratedImage(3, 2, small)])[0] < 2.0 / 255.0
+    with pytest.raises(ValueError, match=r"generated image is 32x32, the lattice's view 3 is 16x16 \(it may be smaller"):
+        large = write_png(tmp_path / "large.png", to_srgb8(*(x.repeat_interleave(2, 0).repeat_interleave(2, 1)
+                                                              for x in (radiance, alpha))))
+        render_errors(scene, real, [GeneratedImage(3, 2, large)])
     with pytest.raises(ValueError, match="same.png: view 99 / light 2 outside the lattice's 6 views x 3 lights"):
         render_errors(scene, real, [GeneratedImage(99, 2, same)])
 
@@ -311,9 +315,12 @@ def test_sanity_checks_drop_bad_generations(setup, tmp_path):
     data, nvs, _, cache = setup
     cfg = PipelineConfig(augment=("nvs",), nvs_views=2, nvs_model=str(nvs), nvs_steps=2,
                          min_silhouette_iou=1.01, cache_dir=str(cache))
-    result = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg,
-                          show_progress=False)
-    assert result["synthetic_images"] == 0 and sum(result["dropped"].values()) == 2
+    # both novel views dropped: the run stops before a final reconstruction that would skip the method
+    with pytest.raises(ValueError, match=r"--augment nvs generated no image \(every generated image was dropped "
+                                         r"\(silhouette: 2\).*lower min_silhouette_iou"):
+        run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
+    assert json.loads((tmp_path / "pipeline.json").read_text())["stages"]["nvs"]["targets"] == 2
+    assert not (tmp_path / "final").exists()
     with pytest.raises(ValueError, match="unknown stage"):
         run_pipeline(data, tmp_path / "x", config=PipelineConfig(augment=("nvs", "super-resolution")))
 

@@ -174,6 +174,24 @@ def parse_transforms(path: Path) -> ParsedTransforms:
                             premultiplied)
 
 
+def parse_rig(path: Path) -> tuple[list[DeclaredCamera], list[DeclaredLight]]:
+    """A light stage's layout without images: the top-level ``cameras`` and ``lights`` of a transforms file (as in
+    :func:`parse_transforms`; ``frames``, if any, are not read). Each must be a non-empty list."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: no such rig file (a transforms file with top-level 'cameras' and 'lights')")
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise data_error(path, f"invalid JSON ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise data_error(path, "expected a JSON object at the top level")
+    for key in ("cameras", "lights"):
+        if not isinstance(meta.get(key), list) or not meta[key]:
+            raise data_error(path, "a rig file needs a non-empty list of the light stage's " + key, key=key)
+    return _declared_cameras(path, meta), _declared_lights(path, meta)
+
+
 def _declared_cameras(path: Path, meta: dict) -> list[DeclaredCamera]:
     entries = meta.get("cameras", [])
     if not isinstance(entries, list):

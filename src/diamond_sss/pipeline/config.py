@@ -28,6 +28,15 @@ class PipelineConfig:
     rounds: int = described(1, "rounds of the pipeline: each round after the first takes the previous round's "
                                "final reconstruction (in <out>/round<k>) as its preliminary one and generates its "
                                "images again from that geometry")
+    rig: str | None = described(None, "a light stage's full layout (a transforms file with top-level cameras and "
+                                      "lights, no images) whose cameras and lights the diffusion stages target; "
+                                      "default: the capture's own lattice when the regime leaves some of its cameras "
+                                      "or lights out, else rig_views cameras and rig_lights lights placed around "
+                                      "the real ones")
+    rig_views: int = described(12, "cameras placed around the real ones when the capture has no lattice to "
+                                    "generate on (only its sparse images) and no rig is given")
+    rig_lights: int = described(8, "lights placed around the real ones when the capture has no lattice to "
+                                   "generate on and no rig is given")
     nvs_views: int = described(12, "at most this many missing views generated per real light (0: all)")
     relight_lights: int = described(8, "at most this many missing lights generated per view (0: all)")
     nvs_model: str | None = described(None, "folder of a novel-view model (default: the shipped one)")
@@ -57,4 +66,5 @@ class PipelineConfig:
                                               "real images, 0.77 at 30")
     cache_dir: str | None = described(None, "cache of generated images (default: ~/.cache/diamond_sss or "
                                             "$DIAMOND_SSS_CACHE)")
-    device: str = described("cpu", "cpu | cuda for the diffusion models (reconstructions use --set device=...)")
+    device: str = described("auto", "auto (CUDA when available, else CPU) | cpu | cuda[:i] for the diffusion models "
+                                    "(reconstructions use --set device=...)")

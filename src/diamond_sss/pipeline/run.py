@@ -8,6 +8,8 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
                 finished reconstruction of the same real images, reused without retraining;
 2. ``nvs``      novel views: for each real light, the lattice views the regime left out (the ``nvs_views``
                 farthest-point-spread ones when capped) generated from the nearest real view under that light;
+                a capture with no lattice to generate on (only its sparse images) gets one first: cameras and
+                lights placed around the real ones, or a rig file's (:mod:`~diamond_sss.pipeline.rig`);
 3. ``relight``  every real and generated view relit to the lattice lights it lacks (the ``relight_lights``
                 spread ones when capped), from the view's first light, geometry rendered from the preliminary
                 reconstruction;
@@ -40,18 +42,20 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from diamond_sss.data.dataset import OLATDataset, directions_from
-from diamond_sss.data.images import load_rgba
+from diamond_sss.data.images import load_rgba, resize_area
 from diamond_sss.data.regimes import RegimeSelection, farthest_point_order, select_regime
 from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, read_image_manifest
+from diamond_sss.errors import DataError
 from diamond_sss.evaluation.metrics import mask_iou
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.pipeline.agreement import agreement_factors, render_errors, render_lattice_image
 from diamond_sss.pipeline.capture import GeneratedImage, check_on_lattice, write_capture
 from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
+from diamond_sss.pipeline.rig import LatticeSource, build_lattice
+from diamond_sss.runs.folder import load_scene
 from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.overrides import make_config, rescheduled
 from diamond_sss.training.run import train_run
-from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.trainer import ImageSource
 from diamond_sss.utils.device import resolve_device
 from diamond_sss.utils.io import atomic_write_json, move_aside, sha256_file, sha256_json
@@ -255,7 +259,7 @@ def _silhouette_ok(path: Path, mask_path: Path | None, reference_alpha: torch.Te
     fraction = float((mask > 0.5).float().mean())
     if fraction < cfg.min_mask_fraction:
         return False, "empty_mask"
-    if mask_iou(reference_alpha, mask) < cfg.min_silhouette_iou:
+    if mask_iou(resize_area(reference_alpha, *mask.shape[:2]), mask) < cfg.min_silhouette_iou:
         return False, "silhouette"
     return True, "ok"
 
@@ -263,7 +267,8 @@ def _silhouette_ok(path: Path, mask_path: Path | None, reference_alpha: torch.Te
 @dataclass
 class PipelineContext:
     """What the stages share: the run's inputs, the real capture, the regime's selection, the preliminary
-    reconstruction's folder and the lattice's view and light directions."""
+    reconstruction's folder, the lattice the diffusion stages generate on (the capture's own, or one made for it:
+    :mod:`~diamond_sss.pipeline.rig`) and its view and light directions."""
 
     data: Path
     out: Path
@@ -279,13 +284,16 @@ class PipelineContext:
     real: OLATDataset
     selection: RegimeSelection
     prelim_dir: Path
+    lattice: OLATDataset
+    lattice_source: LatticeSource
     view_dirs: torch.Tensor
     light_dirs: torch.Tensor
     show_progress: bool
 
 
 def checked_config(config: PipelineConfig | None) -> PipelineConfig:
-    """``config`` (default: the defaults) once its values are checked; a bad one is a ``ValueError`` naming the key."""
+    """``config`` (default: the defaults) once its values are checked, its ``device`` resolved (``auto``: CUDA when
+    available, else CPU); a bad one is a ``ValueError`` naming the key."""
     cfg = config or PipelineConfig()
     unknown = set(cfg.augment) - set(AUGMENTS)
     if unknown:
@@ -302,7 +310,7 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
     if cfg.prelim_iterations is not None and cfg.prelim_iterations <= 0:
         raise ValueError(f"pipeline config 'prelim_iterations' (--prelim-iterations) must be a positive number of "
                          f"training steps, got {cfg.prelim_iterations}")
-    for key, least in (("nvs_views", 0), ("relight_lights", 0), ("nvs_steps", 1), ("relight_steps", 1),
+    for key, least in (("rig_views", 0), ("rig_lights", 0), ("nvs_views", 0), ("relight_lights", 0), ("nvs_steps", 1), ("relight_steps", 1),
                        ("relight_samples", 1)):
         if getattr(cfg, key) < least:
             raise ValueError(f"pipeline config '{key}' (--{key.replace('_', '-')}) must be an integer >= {least}, "
@@ -317,7 +325,11 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
             geometry_source(cfg.nvs_geometry)
         except GeometryError as exc:
             raise ValueError(f"pipeline config 'nvs_geometry': {exc}") from exc
-    return cfg
+    try:
+        device = resolve_device(cfg.device)  # auto: CUDA when available
+    except ValueError as exc:
+        raise ValueError(f"pipeline config 'device' (--device): {exc}") from exc
+    return replace(cfg, device=str(device))
 
 
 def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, overrides: dict[str, Any] | None,
@@ -332,6 +344,9 @@ def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, 
     prelim_overrides = overrides if prelim_overrides is None else {**prelim_overrides, "seed": seed}
     make_config(prelim_preset, overrides=prelim_overrides)  # a bad preset or key fails here, before any stage
     real = OLATDataset(data, split, downscale=train_cfg.runtime.downscale)
+    if len(real.observations) < 2:
+        raise DataError(f"{real.json_path}: {len(real.observations)} image; a reconstruction needs at least 2 "
+                        "images of the object")
     selection = select_regime(real, regime, seed)
     model_hashes = {}
     if "nvs" in cfg.augment:
@@ -352,12 +367,40 @@ def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, 
     if cfg.prelim_run and cfg.augment:
         prelim_dir = check_prelim_run(Path(cfg.prelim_run), real, selection.observations)
         inputs["prelim_model_hash"] = sha256_file(prelim_dir / "model.safetensors")
+    lattice_source, lattice = generation_lattice(data, split, out, real, selection, cfg)
+    inputs["lattice"] = "capture" if lattice is real else "rig" if cfg.rig else "sampled"
+    if cfg.rig is not None:
+        inputs["rig_sha256"] = sha256_file(cfg.rig)
     center = real.bounds.center
     ctx = PipelineContext(data, out, split, regime, preset, overrides, prelim_preset, prelim_overrides, seed, cfg,
-                          train_cfg, real, selection,
-                          prelim_dir, directions_from(real.camera_centers, center),
-                          directions_from(real.light_positions, center), show_progress)
+                          train_cfg, real, selection, prelim_dir, lattice, lattice_source,
+                          directions_from(lattice.camera_centers, center),
+                          directions_from(lattice.light_positions, center), show_progress)
     return ctx, inputs
+
+
+def lattice_has_targets(real: OLATDataset, selection: RegimeSelection, augment: tuple[str, ...]) -> bool:
+    """Whether every stage of ``augment`` has something to generate on the capture's own lattice: ``nvs`` a camera
+    the regime left out, ``relight`` a (view, light) pair the regime did not select."""
+    needs = {"nvs": len(selection.views) < real.num_views,
+             "relight": len(selection.observations) < real.num_views * real.num_lights}
+    return all(needs[stage] for stage in augment)
+
+
+def generation_lattice(data: Path, split: str, out: Path, real: OLATDataset, selection: RegimeSelection,
+                       cfg: PipelineConfig) -> tuple[LatticeSource, OLATDataset]:
+    """The lattice the diffusion stages generate on: ``cfg.rig``'s when given; else the capture's own when each
+    stage has something to generate on it (:func:`lattice_has_targets`; or nothing is generated); else cameras and
+    lights placed around the real ones (``rig_views`` / ``rig_lights``), written to ``<out>/rig``."""
+    if cfg.rig is None and (not cfg.augment or lattice_has_targets(real, selection, cfg.augment)):
+        return LatticeSource(Path(data), split), real
+    if cfg.rig is None:
+        logger.info("%s: no camera or light of the capture left to generate (%d images of %d views x %d lights): "
+                    "placing %d cameras and %d lights around the real ones", real.json_path,
+                    len(selection.observations), real.num_views, real.num_lights, cfg.rig_views, cfg.rig_lights)
+    source, lattice = build_lattice(Path(out) / "rig", Path(data), split, selection.observations, rig_file=cfg.rig,
+                                    views=cfg.rig_views, lights=cfg.rig_lights, downscale=real.downscale)
+    return source, lattice
 
 
 class SilhouetteFilter:
@@ -375,14 +418,14 @@ class SilhouetteFilter:
         if view not in self._alpha:
             if self._scene is None:
                 self._scene = load_scene(self.ctx.prelim_dir)[0]
-            render = render_lattice_image(self._scene, self.ctx.real, view, 0)
+            render = render_lattice_image(self._scene, self.ctx.lattice, view, 0)
             self._alpha[view] = render.gbuffer.alpha[0]
         return self._alpha[view]
 
     def keep(self, items: list[GeneratedImage]) -> list[GeneratedImage]:
         """The ``items`` that pass, in order; the others are counted in :attr:`dropped`."""
         kept = []
-        for item in check_on_lattice(items, self.ctx.real):
+        for item in check_on_lattice(items, self.ctx.lattice):
             ok, reason = _silhouette_ok(item.image, item.mask, self.reference_alpha(item.view), self.ctx.cfg)
             if ok:
                 kept.append(item)
@@ -420,23 +463,28 @@ def nvs_stage(ctx: PipelineContext) -> dict:
     real view, at the size the reconstructions train at (the real images over ``runtime.downscale``)."""
     from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
 
-    cfg, real = ctx.cfg, ctx.real
+    cfg, lattice, source = ctx.cfg, ctx.lattice, ctx.lattice_source
     real_views = set(ctx.selection.views)
-    missing = [v for v in range(real.num_views) if v not in real_views]
+    missing = [v for v in range(lattice.num_views) if v not in real_views]
     targets = spread_subset(missing, ctx.view_dirs, cfg.nvs_views, ctx.seed)
+    if not targets:
+        why = (f"nvs_views is 0 of {len(missing)} missing views" if missing else
+               f"every camera of the lattice ({lattice.json_path}) has a real image in the regime")
+        logger.warning("nvs: no novel view to generate: %s", why)
+        return {"targets": 0, "calls": 0, "why": why}
     geometry = nvs_geometry(cfg, ctx.prelim_dir)
     calls = 0
     for light in sorted(set(ctx.selection.lights)):
-        sources = [v for v in sorted(real_views) if bool(real.presence[v, light])]
-        if not sources or not targets:
+        sources = [v for v in sorted(real_views) if bool(lattice.presence[v, light])]
+        if not sources:
             continue
         nearest: dict[int, list[int]] = {}
         for target in targets:
             similarity = ctx.view_dirs[sources] @ ctx.view_dirs[target]
             nearest.setdefault(sources[int(torch.argmax(similarity))], []).append(target)
         for reference, group in nearest.items():
-            generate_novel_views(ctx.data, ctx.out / "nvs" / f"l{light:03d}_v{reference:03d}", reference, light,
-                                 group, split=ctx.split, model_dir=cfg.nvs_model,
+            generate_novel_views(source.data, ctx.out / "nvs" / f"l{light:03d}_v{reference:03d}", reference, light,
+                                 group, split=source.split, model_dir=cfg.nvs_model,
                                  steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=ctx.seed,
                                  cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
                                  device=cfg.device, geometry=geometry, downscale=ctx.train_cfg.runtime.downscale)
@@ -454,7 +502,7 @@ def write_relight_sources(ctx: PipelineContext, generated: list[GeneratedImage])
     chosen = set(ctx.selection.observations)
     sources = [GeneratedImage(o.view, o.light, o.image_path, o.mask_path)
                for i, o in enumerate(ctx.real.observations) if i in chosen] + generated
-    return write_capture(ctx.out / "relight", "sources", ctx.real, sources)
+    return write_capture(ctx.out / "relight", "sources", ctx.lattice, sources)
 
 
 def relight_stage(ctx: PipelineContext, sources_json: Path) -> dict:
@@ -473,18 +521,24 @@ def relight_stage(ctx: PipelineContext, sources_json: Path) -> dict:
     model = load_model(cfg.relight_model, device=cfg.device)
     geometry = RenderedGeometry(ctx.prelim_dir, device=cfg.device)
     cache = OutputCache(Path(cfg.cache_dir) / "relight" if cfg.cache_dir else default_cache_root())
-    dataset = OLATDataset(relight_dir, "sources")  # ctx.real's lattice: already downscaled (runtime.downscale)
+    dataset = OLATDataset(relight_dir, "sources")  # ctx.lattice: already downscaled (runtime.downscale)
     lights_of_view: dict[int, list[int]] = {}
     for obs in dataset.observations:
         lights_of_view.setdefault(obs.view, []).append(obs.light)
     results = []
     for view, lights in sorted(lights_of_view.items()):
-        missing = [light for light in range(ctx.real.num_lights) if light not in lights]
+        missing = [light for light in range(ctx.lattice.num_lights) if light not in lights]
         targets = spread_subset(missing, ctx.light_dirs, cfg.relight_lights, ctx.seed)
-        results += relight_view(model, dataset, view, lights[0], targets, geometry, cache,
-                                num_steps=cfg.relight_steps, seed=ctx.seed, samples=cfg.relight_samples)
+        if targets:
+            results += relight_view(model, dataset, view, lights[0], targets, geometry, cache,
+                                    num_steps=cfg.relight_steps, seed=ctx.seed, samples=cfg.relight_samples)
     write_relit(relight_dir / "out", results)
-    return {"views": len(lights_of_view), "images": len(results), "sources_json": sources_json.name}
+    counts = {"views": len(lights_of_view), "images": len(results), "sources_json": sources_json.name}
+    if not results:
+        counts["why"] = ("relight_lights is 0" if cfg.relight_lights == 0 else
+                         f"every view already has every light of the lattice ({ctx.lattice.json_path})")
+        logger.warning("relight: no image to generate: %s", counts["why"])
+    return counts
 
 
 def relit_images(ctx: PipelineContext) -> list[GeneratedImage]:
@@ -500,12 +554,12 @@ def final_sources(ctx: PipelineContext, generated: list[GeneratedImage],
     copies = real_copies(num_real, len(generated), target_real_share(num_real, ctx.cfg))
     extra, factors = [], []
     if generated:
-        write_capture(ctx.out / "synthetic", "train", ctx.real, generated)
+        write_capture(ctx.out / "synthetic", "train", ctx.lattice, generated)
         # ctx.real's lattice and images made at its size: already downscaled (runtime.downscale), read as they are
         synthetic = OLATDataset(ctx.out / "synthetic", "train")
         if ctx.cfg.agreement_power > 0.0:
             prelim = load_scene(ctx.prelim_dir, resolve_device(ctx.train_cfg.runtime.device))[0]
-            errors = render_errors(prelim, ctx.real, generated)
+            errors = render_errors(prelim, ctx.lattice, generated)
             factor_of = dict(zip(((item.view, item.light) for item in generated),
                                  agreement_factors(errors, ctx.cfg.agreement_power), strict=True))
             factors = [factor_of[obs.view, obs.light] for obs in synthetic.observations]
@@ -526,6 +580,20 @@ def final_stage(ctx: PipelineContext, extra: list[ImageSource], counts: dict) ->
     result = train_run(ctx.data, ctx.out / "final", split=ctx.split, regime=ctx.regime, preset=ctx.preset,
                        overrides=ctx.overrides, show_progress=ctx.show_progress, resume=True, extra_sources=extra)
     return {**counts, "steps": result.steps}
+
+
+def nothing_generated(manifest: PipelineManifest, cfg: PipelineConfig, dropped: dict[str, int]) -> str:
+    """Why augmentation asked for (``cfg.augment``) left no generated image, and the fix: the message of the error
+    that stops the run before a final reconstruction that would quietly skip the method."""
+    reasons = [f"{stage}: {record['why']}" for stage in cfg.augment
+               if (record := manifest.done(stage)) is not None and "why" in record]
+    if dropped:
+        reasons.append("every generated image was dropped (" + ", ".join(f"{k}: {v}" for k, v in
+                       sorted(dropped.items())) + "): they disagree with the preliminary reconstruction's silhouette; "
+                       "check it (<out>/prelim) or lower min_silhouette_iou / min_mask_fraction")
+    return (f"--augment {','.join(cfg.augment)} generated no image ({'; '.join(reasons) or 'no stage made one'}); "
+            "give a regime that leaves cameras or lights of the capture out, a rig (--rig FILE), more placed cameras "
+            "and lights (rig_views / rig_lights), or --augment none for a reconstruction on the real images alone")
 
 
 def eval_stage(ctx: PipelineContext) -> dict:
@@ -576,6 +644,8 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
         sources_json = write_relight_sources(ctx, generated)
         manifest.stage("relight", lambda: relight_stage(ctx, sources_json))
         generated += silhouettes.keep(relit_images(ctx))
+    if cfg.augment and not generated:
+        raise ValueError(nothing_generated(manifest, cfg, silhouettes.dropped))
     extra, counts = final_sources(ctx, generated, silhouettes.dropped)
     manifest.stage("final", lambda: final_stage(ctx, extra, counts))
     if not (Path(data) / "transforms_test.json").is_file():

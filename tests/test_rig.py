@@ -1,0 +1,176 @@
+"""The generation lattice of a capture of only its sparse images: cameras and lights placed around the real ones,
+or a rig file's; the pipeline generates on it, and says why when it generates nothing."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from tiny_models import TINY_NVS, TINY_RELIGHT
+
+from diamond_sss.data import OLATDataset
+from diamond_sss.data.analytic import make_capture
+from diamond_sss.data.conventions import look_at_opengl_c2w, project_points
+from diamond_sss.data.dataset import directions_from
+from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
+from diamond_sss.diffusion.relight.config import RelightModelConfig
+from diamond_sss.diffusion.relight.model import RelightDiffusion
+from diamond_sss.errors import DataError
+from diamond_sss.pipeline.rig import (
+    ELEVATION_MARGIN_DEG,
+    build_lattice,
+    elevation_deg,
+    estimate_up,
+    sampled_rig,
+    spread_away,
+)
+from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
+
+TRAIN = {"num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "iterations": 2, "raytrace_gaussians": 32,
+         "mv_pixels_per_pair": 16, "log_every": 1, "device": "cpu"}
+
+
+@pytest.fixture(scope="module")
+def sparse(tmp_path_factory):
+    """A capture of only its 9 images (3 views x 3 lights, nothing else declared), tiny random models."""
+    data = tmp_path_factory.mktemp("sparse")
+    make_capture(data, views=3, lights=3, size=16)
+    torch.manual_seed(0)
+    nvs = NVSModel(NVSConfig(**TINY_NVS)).save(tmp_path_factory.mktemp("nvs"))
+    relight = RelightDiffusion.from_config(RelightModelConfig(**TINY_RELIGHT)).save(tmp_path_factory.mktemp("rl"))
+    return data, nvs, relight, tmp_path_factory.mktemp("cache")
+
+
+def test_spread_away_picks_the_farthest_candidates_from_what_is_fixed():
+    candidates = torch.tensor([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0.9, 0.1, 0]], dtype=torch.float64)
+    fixed = torch.tensor([[1.0, 0, 0]], dtype=torch.float64)
+    assert spread_away(candidates, fixed, 1) == [1]  # the opposite direction
+    assert spread_away(candidates, fixed, 2) == [1, 2]  # then the one farthest from both
+    assert spread_away(candidates, fixed, 0) == [] and len(spread_away(candidates, fixed, 9)) == 4
+
+
+def test_up_and_elevation_of_upright_cameras():
+    eyes = torch.tensor([[3.0, 0, 1.0], [0, 3.0, -0.5], [-3.0, 0.5, 0.0]], dtype=torch.float64)
+    c2w = look_at_opengl_c2w(eyes, torch.zeros(3))
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+    w2c = torch.linalg.inv(c2w @ flip)  # OpenCV world-to-camera
+    assert torch.allclose(estimate_up(w2c), torch.tensor([0.0, 0, 1], dtype=torch.float64), atol=0.2)
+    dirs = torch.nn.functional.normalize(eyes, dim=-1)
+    expected = torch.rad2deg(torch.asin(eyes[:, 2] / eyes.norm(dim=-1)))
+    assert torch.allclose(elevation_deg(dirs, torch.tensor([0.0, 0, 1])), expected, atol=1e-6)
+
+
+def test_sampled_cameras_and_lights_sit_where_the_real_ones_could(sparse):
+    capture = OLATDataset(sparse[0])
+    cameras, lights = sampled_rig(capture, 5, 4)
+    assert (len(cameras), len(lights)) == (5, 4)
+    center = capture.bounds.center.double()
+    up = estimate_up(capture.viewmats)
+    real_dirs = directions_from(capture.camera_centers, capture.bounds.center).double()
+    real_elev = elevation_deg(real_dirs, up)
+    real_dist = (capture.camera_centers.double() - center).norm(dim=-1)
+    for entry in cameras:
+        c2w = torch.tensor(entry["transform_matrix"], dtype=torch.float64)
+        eye = c2w[:3, 3]
+        assert float(real_dist.min()) - 1e-6 <= float((eye - center).norm()) <= float(real_dist.max()) + 1e-6
+        direction = (eye - center) / (eye - center).norm()
+        elev = float(elevation_deg(direction[None], up)[0])
+        assert real_elev.min() - ELEVATION_MARGIN_DEG - 0.5 <= elev <= real_elev.max() + ELEVATION_MARGIN_DEG + 0.5
+        assert float((real_dirs @ direction).max()) < 0.999  # not a real view
+        assert (entry["fl_x"], entry["w"], entry["h"]) == (float(capture.intrinsics[0, 0, 0]), 16, 16)
+    lattice_dir = sparse[3] / "lattice_check"
+    _, lattice = build_lattice(lattice_dir, sparse[0], "train", range(9), rig_file=None, views=5, lights=4)
+    for view in range(3, 8):  # aimed at the centre: it projects to the image centre
+        camera = lattice.cameras[view]
+        uv, depth = project_points(center[None], camera.w2c.double(), camera.K.double())
+        assert torch.allclose(uv[0], torch.tensor([8.0, 8.0], dtype=torch.float64), atol=1e-3) and depth[0] > 0
+    light_dist = (capture.light_positions.double() - center).norm(dim=-1)
+    for entry in lights:
+        distance = float((torch.tensor(entry["position"], dtype=torch.float64) - center).norm())
+        assert float(light_dist.min()) - 1e-6 <= distance <= float(light_dist.max()) + 1e-6
+
+
+def test_the_lattice_keeps_the_real_indices_and_images(sparse, tmp_path):
+    capture = OLATDataset(sparse[0])
+    source, lattice = build_lattice(tmp_path, sparse[0], "train", [0, 4, 8], rig_file=None, views=4, lights=2)
+    assert (lattice.num_views, lattice.num_lights, len(lattice)) == (7, 5, 3)
+    assert (source.new_views, source.new_lights) == ((3, 4, 5, 6), (3, 4))
+    assert torch.allclose(lattice.viewmats[:3], capture.viewmats, atol=1e-5)
+    assert torch.allclose(lattice.light_positions[:3], capture.light_positions, atol=1e-5)
+    assert [(o.view, o.light) for o in lattice.observations] == [(0, 0), (1, 1), (2, 2)]
+    assert torch.equal(lattice.load(1).rgb, capture.load(4).rgb)
+
+
+def _rig(tmp_path, capture: OLATDataset, eyes: list[list[float]], **camera_keys) -> str:
+    c2w = look_at_opengl_c2w(torch.tensor(eyes, dtype=torch.float64), torch.zeros(3))
+    cameras = [{"transform_matrix": m.tolist(), "camera_angle_x": 0.8, **camera_keys} for m in c2w]
+    lights = [{"position": p.tolist()} for p in capture.light_positions] + [{"position": [0.0, 0.0, -4.0]}]
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps({"w": 16, "h": 16, "cameras": cameras, "lights": lights}))
+    return str(path)
+
+
+def test_a_rig_file_gives_the_new_cameras_and_lights(sparse, tmp_path):
+    capture = OLATDataset(sparse[0])
+    rig = _rig(tmp_path, capture, [[0.0, 3.0, 0.0], [0.0, -3.0, 0.5]])
+    source, lattice = build_lattice(tmp_path / "out", sparse[0], "train", range(9), rig_file=rig, views=0, lights=0)
+    assert (source.new_views, source.new_lights) == ((3, 4), (3,))
+    assert torch.allclose(lattice.light_positions[3], torch.tensor([0.0, 0.0, -4.0]))
+    assert torch.allclose(lattice.camera_centers[3], torch.tensor([0.0, 3.0, 0.0]), atol=1e-5)
+
+
+def test_a_bad_rig_file_is_named_and_nothing_is_written(sparse, tmp_path):
+    capture = OLATDataset(sparse[0])
+    out = tmp_path / "out"
+    rig = _rig(tmp_path, capture, [[0.0, 3.0, 0.0]], w=32, h=32)
+    with pytest.raises(DataError, match=r"rig .*rig\.json: cameras\[0\]: image size 32x32 \(w/h\) contradicts the "
+                                        r"capture's 16x16"):
+        build_lattice(out, sparse[0], "train", range(9), rig_file=rig, views=0, lights=0)
+    real_pose = torch.linalg.inv(capture.viewmats[0].double())[:3, 3].tolist()
+    rig = _rig(tmp_path, capture, [real_pose])  # a real camera's place with another field of view
+    with pytest.raises(DataError, match=r"cameras\[0\]: at view 0's place but its intrinsics"):
+        build_lattice(out, sparse[0], "train", range(9), rig_file=rig, views=0, lights=0)
+    c2w = look_at_opengl_c2w(torch.tensor([0.0, 3.0, 0.0], dtype=torch.float64), torch.tensor([0.0, 6.0, 0.0]))
+    (tmp_path / "away.json").write_text(json.dumps({"w": 16, "h": 16, "lights": [{"position": [0, 0, 4]}],
+                                                    "cameras": [{"transform_matrix": c2w.tolist(),
+                                                                 "camera_angle_x": 0.8}]}))
+    with pytest.raises(DataError, match=r"away\.json: new camera 0 \(lattice view 3\) cannot see the object"):
+        build_lattice(out, sparse[0], "train", range(9), rig_file=str(tmp_path / "away.json"), views=0, lights=0)
+    (tmp_path / "nolights.json").write_text(json.dumps({"cameras": [{"transform_matrix": c2w.tolist()}]}))
+    with pytest.raises(DataError, match=r"nolights\.json: key 'lights': a rig file needs a non-empty list"):
+        build_lattice(out, sparse[0], "train", range(9), rig_file=str(tmp_path / "nolights.json"), views=0, lights=0)
+    assert not (out / "transforms_lattice.json").exists()
+
+
+def test_the_pipeline_generates_on_a_capture_of_only_its_sparse_images(sparse, tmp_path):
+    data, nvs, relight, cache = sparse
+    cfg = PipelineConfig(rig_views=2, rig_lights=1, nvs_views=0, relight_lights=1, nvs_model=str(nvs),
+                         relight_model=str(relight), nvs_steps=1, relight_steps=1, relight_samples=1,
+                         min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache))
+    result = run_pipeline(data, tmp_path, regime="all", overrides=TRAIN, config=cfg, show_progress=False)
+    manifest = json.loads((tmp_path / "pipeline.json").read_text())
+    assert manifest["inputs"]["lattice"] == "sampled"
+    # the 2 placed cameras under each of the 3 real lights, then 5 views (3 real, 2 new) each relit to 1 light
+    assert manifest["stages"]["nvs"]["targets"] == 2 and manifest["stages"]["nvs"]["calls"] >= 3
+    assert manifest["stages"]["relight"]["images"] == 5
+    assert result["synthetic_images"] == 11 and result["real_images"] == 9
+    synthetic = OLATDataset(tmp_path / "synthetic", "train")
+    assert (synthetic.num_views, synthetic.num_lights) == (5, 4)
+
+
+def test_augmentation_that_generates_nothing_stops_with_the_reason(sparse, tmp_path):
+    data, nvs, _, cache = sparse
+    cfg = PipelineConfig(augment=("nvs",), rig_views=0, nvs_model=str(nvs), nvs_steps=1, cache_dir=str(cache))
+    with pytest.raises(ValueError, match=r"--augment nvs generated no image \(nvs: every camera of the lattice .* has "
+                                         r"a real image in the regime\); give a regime .*--rig FILE"):
+        run_pipeline(data, tmp_path, regime="all", overrides=TRAIN, config=cfg, show_progress=False)
+    assert not (tmp_path / "final").exists()
+
+
+def test_a_one_image_capture_is_refused(tmp_path):
+    make_capture(tmp_path, views=1, lights=1, size=16)
+    with pytest.raises(DataError, match=r"transforms_train\.json: 1 image; a reconstruction needs at least 2"):
+        run_pipeline(tmp_path, tmp_path / "run", regime="all", overrides=TRAIN,
+                     config=PipelineConfig(augment=()), show_progress=False)
+    assert not (tmp_path / "run" / "pipeline.json").exists()
