@@ -26,7 +26,7 @@ from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.metrics import image_metrics
 from diamond_sss.pipeline.agreement import load_generated, render_lattice_image
 from diamond_sss.pipeline.capture import check_on_lattice
-from diamond_sss.training.run_folder import load_scene
+from diamond_sss.runs.folder import load_scene
 
 RESULTS = Path(__file__).resolve().parent / "results" / "generated_views"
 METRICS = ("psnr", "ssim", "mask_iou")

@@ -23,7 +23,7 @@ from diamond_sss.data.dataset import OLATDataset, directions_from
 from diamond_sss.data.errors import DataError
 from diamond_sss.data.regimes import nearest_angle_deg
 from diamond_sss.evaluation.evaluate import evaluate_scene
-from diamond_sss.training.run_folder import load_scene
+from diamond_sss.runs.folder import load_scene
 from diamond_sss.utils.io import atomic_write_json, atomic_write_text
 
 RESULTS = Path(__file__).resolve().parent / "results" / "quality" / "light_distance"

@@ -44,9 +44,9 @@ from diamond_sss.diffusion.nvs.pipeline import (
 from diamond_sss.diffusion.nvs.rays import view_angle_degrees
 from diamond_sss.evaluation.metrics import image_metrics
 from diamond_sss.pipeline.capture import lattice_header
+from diamond_sss.runs.folder import load_scene
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.run import train_run
-from diamond_sss.training.run_folder import load_scene
 
 RESULTS = Path(__file__).resolve().parent / "results" / "nvs_quality"
 WORK = Path(__file__).resolve().parents[1] / "outputs" / "benchmarks" / "nvs_quality"

@@ -36,10 +36,10 @@ from diamond_sss.evaluation.noise import noise_ceiling
 from diamond_sss.evaluation.regions import region_errors, save_region_figure
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.experiments.ablation import regime_slug
+from diamond_sss.runs.folder import load_scene
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.overrides import parse_sets
 from diamond_sss.training.run import train_run
-from diamond_sss.training.run_folder import load_scene
 
 RESULTS = Path(__file__).resolve().parent / "results" / "quality"
 RUNS = Path("outputs") / "benchmarks" / "quality"

@@ -79,3 +79,18 @@ def test_only_training_jobs_import_the_trainer():
         and "diamond_sss.training.trainer" in imports_of(path)
     )
     assert not offenders, f"these modules import the training loop (use diamond_sss.training.run_folder): {offenders}"
+
+
+def test_the_diffusion_models_import_nothing_from_the_reconstruction_training_package():
+    """diffusion/ stands beside training/: the checkpoint helpers they share live in utils/, the finished-run reader
+    in runs/."""
+    offenders = sorted(
+        f"{module_name(path)} imports {name}"
+        for path in (SOURCE / "diffusion").rglob("*.py")
+        for name in imports_of(path)
+        if name == "diamond_sss.training" or name.startswith("diamond_sss.training.")
+    )
+    assert not offenders, f"diffusion modules import the training package: {offenders}"
+    graph = package_graph()
+    assert {"diffusion.nvs", "diffusion.relight", "diffusion.geometry"} <= set(graph)
+    assert not [package for package in graph if package.startswith("diffusion") and "training" in graph[package]]

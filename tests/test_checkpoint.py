@@ -1,4 +1,4 @@
-"""One checkpoint module: 8-digit step folders, older 7-digit folders still found and ordered by step."""
+"""Step checkpoint folders (trainer, fine-tunes): 8 digits; older 7-digit folders still found, ordered by step."""
 
 import json
 import shutil
@@ -7,16 +7,14 @@ import torch
 from accelerate import Accelerator, debug_launcher
 from accelerate.state import AcceleratorState
 
-from diamond_sss.diffusion.common.runtime import make_accelerator
-from diamond_sss.training.checkpoint import (
-    checkpoint_folders,
+from diamond_sss.diffusion.common.checkpoints import (
     latest_accelerate_checkpoint,
     load_accelerate_checkpoint,
-    resume_checkpoint,
     save_accelerate_checkpoint,
-    save_checkpoint,
-    step_folder_name,
 )
+from diamond_sss.diffusion.common.runtime import make_accelerator
+from diamond_sss.training.checkpoint import checkpoint_folders, resume_checkpoint, save_checkpoint
+from diamond_sss.utils.step_folders import step_folder_name
 
 
 def _save(run_dir, step, **kwargs):

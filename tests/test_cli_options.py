@@ -9,6 +9,7 @@ import pytest
 from diamond_sss.cli.main import main
 from diamond_sss.cli.options import config_from, options_of
 from diamond_sss.pipeline.config import PipelineConfig
+from diamond_sss.training.overrides import short_run_overrides
 
 
 @pytest.fixture
@@ -27,11 +28,14 @@ def captured_pipeline(monkeypatch):
 
 def test_run_reaches_every_pipeline_field_with_the_configs_defaults(tmp_path, captured_pipeline, capsys):
     base = ["run", "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--quiet"]
-    main([*base, "--augment", "none"])
+    main([*base, "--augment", "none"])  # the default preset auto: the preliminary reconstruction is sss3dgs's
+    assert captured_pipeline["config"] == PipelineConfig(augment=(), prelim_preset="sss3dgs")
+    main([*base, "--augment", "none", "--preset", "diamond"])
     assert captured_pipeline["config"] == PipelineConfig(augment=())
     main([*base, "--augment", "relight", "--prelim-iterations", "5", "--nvs-guidance", "2.5",
           "--min-silhouette-iou", "0.3", "--min-mask-fraction", "0.01", "--relight-samples", "2", "--device", "cuda",
-          "--set", "losses.lambda_dssim=0.3", "--iterations", "7", "--keep-schedule", "--seed", "3"])
+          "--set", "losses.lambda_dssim=0.3", "--iterations", "7", "--keep-schedule", "--seed", "3",
+          "--preset", "diamond"])
     assert captured_pipeline["config"] == PipelineConfig(
         augment=("relight",), prelim_iterations=5, nvs_guidance=2.5, min_silhouette_iou=0.3, min_mask_fraction=0.01,
         relight_samples=2, device="cuda")
@@ -128,9 +132,11 @@ def test_seed_and_device_flags_left_out_keep_the_config_files_values(tmp_path, m
     monkeypatch.setattr(training_run, "train_run", lambda data, out, **kwargs: seen.update(kwargs) or
                         dataclasses.make_dataclass("R", ["steps", "seconds", "num_gaussians", "final_loss"])(1, 0, 1, 0))
     base = ["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--quiet"]
-    main(base)
+    main(base)  # the default preset auto: diamond with the short-run settings, no seed or device among them
+    assert seen["overrides"] == short_run_overrides(1000, dense=True) and seen["preset"] == "diamond"
+    main([*base, "--preset", "diamond"])
     assert seen["overrides"] == {}
-    main([*base, "--seed", "5", "--device", "cpu"])
+    main([*base, "--preset", "diamond", "--seed", "5", "--device", "cpu"])
     assert seen["overrides"] == {"seed": 5, "device": "cpu"}
     monkeypatch.setattr(ablation, "run_ablation", lambda data, out, **kwargs: seen.update(kwargs) or [])
     main(["ablate", "--data", str(tmp_path), "--out", str(tmp_path / "ablation"), "--set", "seed=3"])
@@ -190,3 +196,23 @@ def test_the_cli_defaults_are_the_experiments_own():
     assert ablate_defaults["regimes"].default == list(REGIMES) == ["all", "views=5,lights=6", "views=3,lights=3"]
     assert ablate_defaults["variants"].default == list(VARIANTS)
     assert inspect.signature(demo).parameters["regime"].default == DEMO_REGIME
+
+
+def test_diffusion_devices_default_to_auto_and_resolve_to_cuda_when_available(tmp_path, captured_pipeline):
+    """`run --device` and `nvs` / `relight --device` default to auto: CUDA when torch sees a GPU, else the CPU; the
+    pipeline resolves it once (checked_config), before any stage, and names a bad one."""
+    import inspect
+
+    import torch
+
+    from diamond_sss.cli.nvs_commands import nvs
+    from diamond_sss.cli.relight_commands import relight
+    from diamond_sss.pipeline.run import checked_config
+
+    main(["run", "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--quiet", "--augment", "none"])
+    assert captured_pipeline["config"].device == "auto" == PipelineConfig().device
+    assert all(inspect.signature(command).parameters["device"].default == "auto" for command in (nvs, relight))
+    expected = "cuda" if torch.cuda.is_available() else "cpu"
+    assert checked_config(PipelineConfig()).device == expected
+    assert checked_config(PipelineConfig(device="cpu")).device == "cpu"
+    assert checked_config(PipelineConfig(device="cuda")).device == "cuda"  # used (or refused) where a stage runs

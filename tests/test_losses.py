@@ -225,6 +225,41 @@ def test_bilateral_smoothness_gradcheck():
     assert torch.autograd.gradcheck(lambda a: bilateral_smoothness_loss(a, image, mask), (attribute,))
 
 
+def test_shared_edge_weights_give_the_same_losses_and_gradients_with_fewer_operators():
+    """A step's four smoothed attributes share the image's edge weights (edge_weights, as the objective does): bit for
+    bit the losses and gradients of each attribute taking them itself, with 3 x 2 x 12 fewer operators dispatched (per
+    direction the image's difference, its mean magnitude, the edge weight, the pair mask and its count: 12 operators,
+    7 of them kernels on CUDA, once instead of four times)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from diamond_sss.losses.regularizers import edge_weights
+
+    class Dispatched(TorchDispatchMode):
+        count = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.count += 1
+            return func(*args, **(kwargs or {}))
+
+    gen = torch.Generator().manual_seed(3)
+    image = torch.rand(2, 12, 10, 3, generator=gen)
+    mask = (torch.rand(2, 12, 10, 1, generator=gen) > 0.3).float()
+    attributes = [torch.rand(2, 12, 10, channels, generator=gen, requires_grad=True) for channels in (3, 1, 1, 1)]
+
+    def losses(shared: bool) -> tuple[int, list[torch.Tensor]]:
+        with Dispatched() as counter:
+            edges = edge_weights(image, mask, like=attributes[0]) if shared else None
+            values = [bilateral_smoothness_loss(a, image, mask, edges) for a in attributes]
+        return counter.count, [*values, *torch.autograd.grad(torch.stack(values).sum(), attributes)]
+
+    each, alone = losses(shared=False)
+    once, shared = losses(shared=True)
+    assert all(torch.equal(a, b) for a, b in zip(alone, shared, strict=True))
+    assert each - once == 3 * 2 * 12
+    with pytest.raises(ValueError, match=r"edges were made for an image of shape \(2, 12, 10, 3\)"):
+        bilateral_smoothness_loss(attributes[0][:1], image[:1], mask[:1], edge_weights(image, mask))
+
+
 # ----------------------------------------------------------------------------- enhancement and priors
 
 

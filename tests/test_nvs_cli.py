@@ -59,7 +59,7 @@ def test_outputs_manifest_and_cache(setup, tmp_path, monkeypatch):
     ]
     image = iio.imread(tmp_path / "a" / "images" / "view_001.png")
     mask = iio.imread(tmp_path / "a" / "masks" / "view_001.png")
-    assert image.shape == (24, 24, 4) and mask.shape == (24, 24)
+    assert image.shape == (16, 16, 4) and mask.shape == (16, 16)  # the model's size, not the 24 px capture's
     assert (image[..., 3] == mask).all()
 
     def no_model(*args, **kwargs):

@@ -158,6 +158,27 @@ def test_a_resume_with_other_settings_or_data_is_refused_naming_them(objects, tm
     assert any("resumed" in m and "step 1" in m for m in messages)
 
 
+def test_a_run_recorded_before_gradient_clipping_was_a_setting_resumes_unclipped(objects, tmp_path):
+    """The fine-tunes' common folder (``diffusion/common/finetune.py``); a record without ``max_grad_norm`` stands
+    for no clipping, as the novel-view fine-tune trained before the setting existed."""
+    config = tiny_finetune(steps=1, warmup_steps=1, checkpoint_every=1, log_every=1)
+    finetune(objects, tmp_path / "run", config, log=lambda _: None)
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["checkpoints", "finetune_config.json", "model",
+                                                                    "train_log.jsonl"]
+    record = json.loads((tmp_path / "run" / "train_log.jsonl").read_text())
+    assert record.keys() == {"step", "loss", "lr", "seconds", "elapsed_s"} and record["step"] == 1
+    settings = tmp_path / "run" / "finetune_config.json"
+    settings.write_text(json.dumps({k: v for k, v in json.loads(settings.read_text()).items() if k != "max_grad_norm"}))
+    clipped = tiny_finetune(steps=2, warmup_steps=1, checkpoint_every=1, log_every=1, max_grad_norm=1.0)
+    with pytest.raises(ValueError, match=r"other settings \(max_grad_norm: None -> 1\.0\)"):
+        finetune(objects, tmp_path / "run", clipped, log=lambda _: None)
+    messages = []
+    finetune(objects, tmp_path / "run", tiny_finetune(steps=2, warmup_steps=1, checkpoint_every=1, log_every=1),
+             log=messages.append)
+    assert any("resumed" in m and "step 1" in m for m in messages)
+    assert json.loads(settings.read_text())["max_grad_norm"] is None
+
+
 def test_a_time_limited_run_stops_checkpointed_and_resumes_to_the_uninterrupted_weights(objects, tmp_path):
     config = tiny_finetune(steps=3, warmup_steps=1, checkpoint_every=100, log_every=100)
     straight = finetune(objects, tmp_path / "straight", config, log=lambda _: None)

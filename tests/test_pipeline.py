@@ -118,7 +118,7 @@ def test_render_errors_against_the_preliminary_reconstruction(setup, tmp_path):
     # an image made at 8x8 (a diffusion model's resolution) against the render area-downsampled to 8x8
     small = write_png(tmp_path / "small.png", to_srgb8(resize_area(radiance, 8, 8), resize_area(alpha, 8, 8)))
     assert render_errors(scene, real, [GeneratedImage(3, 2, small)])[0] < 2.0 / 255.0
-    with pytest.raises(ValueError, match=r"generated image is 32x32, the lattice's view 3 is 16x16 \(it may be smaller"):
+    with pytest.raises(ValueError, match=r"image is 32x32, the lattice's view 3 is 16x16 \(it may be smaller"):
         large = write_png(tmp_path / "large.png", to_srgb8(*(x.repeat_interleave(2, 0).repeat_interleave(2, 1)
                                                               for x in (radiance, alpha))))
         render_errors(scene, real, [GeneratedImage(3, 2, large)])

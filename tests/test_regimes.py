@@ -113,21 +113,72 @@ def test_only_existing_observations_are_used(lattice):
                for i in selection.observations)
 
 
-def test_a_regime_that_picks_no_captured_image_is_an_error():
-    """On a lattice with missing images, the picked views and lights may share no image: an error naming the
-    regime, the seed and the picks, not an empty selection that fails later in training."""
+def test_views_and_lights_are_picked_captured_together():
+    """On a lattice with missing images, independent picks may share no image; the regime picks a view and a light
+    that were captured together, for every seed."""
     ds = OLATDataset(Path(__file__).parent / "fixtures" / "formats" / "object_full")
     assert not ds.presence.all()
-    with pytest.raises(ValueError, match=r"regime 'views=1,lights=1' \(seed 3\) picked views \[0\] and lights \[2\], "
-                                         r"of which .*transforms_train.json has no image"):
-        select_regime(ds, "views=1,lights=1", 3)
-    selections = []
-    for seed in range(8):  # a seed that picks a captured pair selects its image
-        try:
-            selections.append(select_regime(ds, "views=1,lights=1", seed))
-        except ValueError:
-            continue
-    assert selections and all(len(s.observations) == 1 and ds.presence[s.views[0], s.lights[0]] for s in selections)
+    for seed in range(8):
+        selection = select_regime(ds, "views=1,lights=1", seed)
+        assert len(selection.observations) == 1 and ds.presence[selection.views[0], selection.lights[0]]
+        assert selection.note is None
+
+
+def _half_lattice(ds: OLATDataset, seed: int = 0) -> OLATDataset:
+    """``ds`` with each view lit by a seeded random half of the lights (an incomplete lattice)."""
+    generator = torch.Generator().manual_seed(seed)
+    lit = {view: set(torch.randperm(ds.num_lights, generator=generator)[: ds.num_lights // 2].tolist())
+           for view in range(ds.num_views)}
+    return ds.subset([i for i, obs in enumerate(ds.observations) if obs.light in lit[obs.view]])
+
+
+def test_an_incomplete_lattice_gives_the_full_views_x_lights(lattice):
+    """Each of 20 views lit by 6 of 12 lights: 3 views x 3 lights picked independently share all 9 images with
+    probability 1/512; picked together they do, for every seed, and the picks stay spread and seeded."""
+    half = _half_lattice(OLATDataset(lattice))
+    selections = [select_regime(half, "views=3,lights=3", seed) for seed in range(10)]
+    for selection in selections:
+        assert (len(selection.views), len(selection.lights), len(selection.observations)) == (3, 3, 9)
+        assert half.presence[selection.views][:, selection.lights].all() and selection.note is None
+        assert {(half.observations[i].view, half.observations[i].light) for i in selection.observations} == {
+            (v, l) for v in selection.views for l in selection.lights}
+    assert len({(tuple(s.views), tuple(s.lights)) for s in selections}) >= 3, "the seed does not vary the picks"
+    assert select_regime(half, "views=3,lights=3", 4) == selections[4]
+    assert select_regime(half, "views=all,lights=1", 0).observations  # a light seen by some views: those images
+
+
+def test_when_no_full_views_x_lights_exists_the_note_says_so(lattice, capsys):
+    """5 views sharing 6 given lights among 6 of 12 per view: chance 1/924 per view, so none of 20 does. The
+    selection maximises the captured pairs given its lights (the 5 views seeing most of them) and says how many."""
+    half = _half_lattice(OLATDataset(lattice))
+    selection = select_regime(half, "views=5,lights=6", seed=0)
+    pairs = half.presence[selection.views][:, selection.lights]
+    assert len(selection.views) == 5 and len(selection.lights) == 6
+    assert len(selection.observations) == int(pairs.sum()) < 30
+    coverage = half.presence[:, selection.lights].sum(1)
+    assert int(pairs.sum()) == int(coverage.topk(5).values.sum()), "another 5 views see more of these lights"
+    assert selection.note.startswith(f"{len(selection.observations)} of 5 x 6 = 30 images")
+    assert "incomplete lattice" in selection.note
+    assert selection.to_json() == {"spec": "views=5,lights=6", "seed": 0, "views": selection.views,
+                                   "lights": selection.lights, "observations": selection.observations,
+                                   "note": selection.note, "images": len(selection.observations)}
+
+
+def test_cli_prints_the_note_of_an_incomplete_lattice(tmp_path, capsys):
+    make_capture(tmp_path, views=6, lights=6, size=8)
+    path = tmp_path / "transforms_train.json"
+    payload = json.loads(path.read_text())
+    for view, frame in enumerate(payload["frames"]):  # view v lit by lights v, v+1, v+2 (mod 6): no 2 views share 3
+        keep = [k for k in range(6) if (k - view) % 6 < 3]
+        for key in ("file_paths", "light_positions", "light_intensities"):
+            frame[key] = [frame[key][k] for k in keep]
+    path.write_text(json.dumps(payload))
+    main(["regimes", "--data", str(tmp_path), "--regime", "views=2,lights=3", "--json"])
+    chosen = json.loads(capsys.readouterr().out)
+    # the best: two overlapping windows, e.g. lights {0, 1, 2} in views 0 ({0, 1, 2}) and 1 ({1, 2, 3}): 3 + 2
+    assert chosen["images"] == 5 and chosen["note"].startswith("5 of 2 x 3 = 6 images")
+    main(["regimes", "--data", str(tmp_path), "--regime", "views=2,lights=3"])
+    assert "5 of 2 x 3 = 6 images" in capsys.readouterr().out
 
 
 def test_determinism_and_bad_specs(lattice):

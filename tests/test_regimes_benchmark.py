@@ -9,6 +9,8 @@ import sys
 import pytest
 from repo_scripts import load_script
 
+from diamond_sss.data.analytic import make_capture
+from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.errors import DataError
 
 regimes = load_script("benchmarks/regimes.py", "regimes_benchmark")
@@ -33,24 +35,35 @@ def test_pipeline_settings_take_the_fields_types():
     assert regimes.pipeline_setting("augment", "tuple[str, ...]", "nvs,relight") == ("nvs", "relight")
     with pytest.raises(SystemExit, match="--pipeline-set rounds=many: rounds takes int"):
         regimes.pipeline_setting("rounds", "int", "many")
+    assert regimes.pipeline_setting("nvs_canonical", "bool", "True") is True
+    assert regimes.pipeline_setting("nvs_canonical", "bool", "false") is False
+    with pytest.raises(SystemExit, match="nvs_canonical takes true or false"):
+        regimes.pipeline_setting("nvs_canonical", "bool", "1")
 
 
-def _row(name: str, regime: str, method: str, psnr: float, iou: float) -> dict:
-    return {"object": name, "regime": regime, "method": method, "psnr": psnr, "ssim": 0.5, "mask_iou": iou,
-            "real_images": 9, "synthetic_images": 0}
+def _row(name: str, regime: str, method: str, psnr: float, iou: float, form: str = "lattice") -> dict:
+    return {"object": name, "form": form, "regime": regime, "method": method, "psnr": psnr, "ssim": 0.5,
+            "mask_iou": iou, "real_images": 9, "synthetic_images": 0}
 
 
 def test_targets_are_judged_per_object_and_for_the_mean():
     rows = [_row("a", regimes.NINE, "sss3dgs", 15.0, 0.80), _row("a", regimes.NINE, "full", 17.5, 0.85),
             _row("b", regimes.NINE, "sss3dgs", 15.0, 0.80), _row("b", regimes.NINE, "full", 16.5, 0.90),
-            _row("a", regimes.THIRTY, "full", 24.0, 0.9), _row("a", "all", "dense", 25.5, 0.95)]
+            _row("a", regimes.THIRTY, "full", 24.0, 0.9), _row("a", regimes.THIRTY, "sss3dgs", 23.5, 0.9),
+            _row("a", "all", "dense", 25.5, 0.95),
+            _row("a", "images=9", "sss3dgs", 14.0, 0.80, "sparse"), _row("a", "images=9", "full", 14.5, 0.79, "sparse")]
     lines = regimes.target_lines([*rows, *regimes.mean_rows(rows)])
-    assert "- a, 9 images: full - sss3dgs = +2.50 dB, mask IoU +0.050 (target >= +2 dB and > 0: met)" in lines
-    assert "- b, 9 images: full - sss3dgs = +1.50 dB, mask IoU +0.100 (target >= +2 dB and > 0: not met)" in lines
-    assert "- mean (2), 9 images: full - sss3dgs = +2.00 dB, mask IoU +0.075 (target >= +2 dB and > 0: met)" in lines
-    assert "- a, 30 images: full - dense = -1.50 dB (target >= -2 dB: met)" in lines
+    nine, thirty = "lattice `views=3,lights=3`", "lattice `views=5,lights=6`"
+    assert f"- a, {nine}: full - sss3dgs = +2.50 dB, mask IoU +0.050 (target >= +2 dB and > 0: met)" in lines
+    assert f"- b, {nine}: full - sss3dgs = +1.50 dB, mask IoU +0.100 (target >= +2 dB and > 0: not met)" in lines
+    assert f"- mean (2), {nine}: full - sss3dgs = +2.00 dB, mask IoU +0.075 (target >= +2 dB and > 0: met)" in lines
+    assert f"- a, {thirty}: full - dense = -1.50 dB (target >= -2 dB: met)" in lines
+    assert f"- a, {thirty}: full - sss3dgs = +0.50 dB (target >= +1 dB: not met)" in lines
+    assert ("- a, sparse `images=9`: full - sss3dgs = +0.50 dB, mask IoU -0.010 (target >= +2 dB and > 0: not met)"
+            in lines)
     table = regimes.markdown(rows, 1000, "test machine")
-    assert "| a | `views=3,lights=3` | + novel views (full pipeline) | 17.50 | 0.5000 | 0.850 | 9 / 0 |" in table
+    assert ("| a | lattice | `views=3,lights=3` | + novel views (full pipeline) | 17.50 | 0.5000 | 0.850 | 9 / 0 |  |"
+            in table)
     assert "n / (n + 9) of the images drawn" in table and table.splitlines()[0].endswith("test machine")
 
 
@@ -204,3 +217,24 @@ def test_a_pipeline_rows_final_reconstruction_trains_on_the_rmse_and_its_baselin
     assert make_config("diamond", overrides=handed).losses.photometric_error == "rmse"
     baseline = make_config("sss3dgs", overrides=regimes.short_schedule(1000))
     assert baseline.losses.photometric_error == "l1"
+
+
+def test_the_sparse_form_is_the_regimes_images_as_a_capture_of_their_own_written_once(tmp_path):
+    data = tmp_path / "obj"
+    make_capture(data, views=6, lights=3, size=16)
+    make_capture(data, views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
+    folder = regimes.sparse_capture(data, tmp_path / "runs", "views=2,lights=1", seed=0)
+    assert folder == tmp_path / "runs" / "captures" / "obj_views2_lights1"
+    sparse = OLATDataset(folder)
+    assert (len(sparse), sparse.num_views, sparse.num_lights) == (2, 2, 1)
+    assert len(OLATDataset(folder, "test")) == 4
+    written = (folder / "transforms_train.json").stat().st_mtime_ns
+    assert regimes.sparse_capture(data, tmp_path / "runs", "views=2,lights=1", seed=0) == folder
+    assert (folder / "transforms_train.json").stat().st_mtime_ns == written
+
+
+def test_stage_seconds_of_a_pipeline_folder(tmp_path):
+    (tmp_path / "pipeline.json").write_text(json.dumps({"stages": {"prelim": {"seconds": 0.0, "reused": "x"},
+                                                                    "nvs": {"seconds": 12.5, "targets": 3}}}))
+    assert regimes.stage_seconds(tmp_path) == {"prelim": 0.0, "nvs": 12.5}
+    assert regimes.stage_seconds(tmp_path / "a_training_run") == {}

@@ -6,6 +6,11 @@ import pytest
 import torch
 
 from diamond_sss.diffusion.common.cache import OutputCache
+from diamond_sss.diffusion.common.checkpoints import (
+    latest_accelerate_checkpoint,
+    load_accelerate_checkpoint,
+    save_accelerate_checkpoint,
+)
 from diamond_sss.diffusion.common.hashing import files_hash, state_dict_hash
 from diamond_sss.diffusion.common.runtime import (
     Deadline,
@@ -15,11 +20,6 @@ from diamond_sss.diffusion.common.runtime import (
 )
 from diamond_sss.diffusion.common.sampling import ddim_sample
 from diamond_sss.diffusion.common.schedulers import SchedulerConfig, make_ddim_scheduler
-from diamond_sss.training.checkpoint import (
-    latest_accelerate_checkpoint,
-    load_accelerate_checkpoint,
-    save_accelerate_checkpoint,
-)
 
 
 def test_cache_entries_are_keyed_and_atomic(tmp_path):

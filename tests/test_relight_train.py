@@ -121,7 +121,7 @@ def test_resume_continues_exactly(views, tmp_path):
     stopped = RelightTrainConfig(**{**config.__dict__, "time_limit_s": 0.0})
     finetune(views, tmp_path / "resumed", tiny_model(), stopped)
     steps = [
-        json.loads(line)["step"] for line in (tmp_path / "resumed" / "log.jsonl").read_text().splitlines()
+        json.loads(line)["step"] for line in (tmp_path / "resumed" / "train_log.jsonl").read_text().splitlines()
     ]
     assert steps == [1]
     resumed = finetune(views, tmp_path / "resumed", tiny_model(seed=5), config)
@@ -141,22 +141,52 @@ def test_resume_continues_exactly(views, tmp_path):
     assert all(torch.allclose(straight_ema[k], resumed_ema[k], atol=1e-6) for k in straight_ema)
 
 
+def test_a_run_written_under_the_old_file_names_resumes_to_the_uninterrupted_weights(views, tmp_path):
+    """Relighting runs before the fine-tunes shared one loop wrote ``train_config.json`` (without ``keep_checkpoints``
+    and ``max_grad_norm``: it kept two checkpoints and clipped at norm 1) and ``log.jsonl``."""
+    config = RelightTrainConfig(steps=3, batch_size=2, checkpoint_every=1, log_every=1, cycle_every=2)
+    straight = finetune(views, tmp_path / "straight", tiny_model(), config, log=lambda _: None)
+    old = tmp_path / "old"
+    finetune(views, old, tiny_model(), RelightTrainConfig(**{**config.__dict__, "time_limit_s": 0.0}),
+             log=lambda _: None)
+    recorded = json.loads((old / "finetune_config.json").read_text())
+    del recorded["keep_checkpoints"], recorded["max_grad_norm"]
+    (old / "train_config.json").write_text(json.dumps(recorded))
+    (old / "finetune_config.json").unlink()
+    (old / "train_log.jsonl").rename(old / "log.jsonl")
+    with pytest.raises(ValueError, match=r"train_config\.json: .*other settings \(max_grad_norm: 1\.0 -> 0\.5\)"):
+        finetune(views, old, tiny_model(), RelightTrainConfig(**{**config.__dict__, "max_grad_norm": 0.5}))
+    assert (old / "train_config.json").is_file() and not (old / "finetune_config.json").exists()  # left as it was
+    messages = []
+    resumed = finetune(views, old, tiny_model(seed=5), config, log=messages.append)
+    assert any("resumed" in m and "step 1" in m for m in messages)
+    assert any("log.jsonl renamed train_log.jsonl" in m for m in messages)
+    a, b = RelightDiffusion.load(straight).state_dict(), RelightDiffusion.load(resumed).state_dict()
+    assert all(torch.allclose(a[k], b[k], atol=1e-6) for k in a)
+    assert sorted(p.name for p in old.iterdir()) == ["checkpoints", "finetune_config.json", "model", "selection.json",
+                                                     "train_log.jsonl"]
+    records = [json.loads(line) for line in (old / "train_log.jsonl").read_text().splitlines()]
+    assert [record["step"] for record in records] == [1, 2, 3]
+    assert records[-1].keys() >= {"step", "loss", "lr", "seconds", "elapsed_s", "v_mse"}  # the novel-view log's keys
+    assert json.loads((old / "finetune_config.json").read_text())["max_grad_norm"] == 1.0
+
+
 def test_a_resume_with_other_settings_or_without_its_ema_is_refused(views, tmp_path):
     config = RelightTrainConfig(steps=2, batch_size=2, checkpoint_every=1, log_every=1, time_limit_s=0.0)
     finetune(views, tmp_path / "run", tiny_model(), config)
-    recorded = json.loads((tmp_path / "run" / "train_config.json").read_text())
+    recorded = json.loads((tmp_path / "run" / "finetune_config.json").read_text())
     for changed, message in (({"learning_rate": 1e-3}, r"learning_rate: 0\.0005 -> 0\.001"),
                              ({"steps": 3}, r"steps: 2 -> 3"),  # the cosine decay spans the steps
                              ({"batch_size": 3, "seed": 1}, r"batch_size: 2 -> 3; seed: 0 -> 1")):
         other = RelightTrainConfig(**{**config.__dict__, **changed})
-        with pytest.raises(ValueError, match=rf"train_config\.json: .*other settings \({message}\)"):
+        with pytest.raises(ValueError, match=rf"finetune_config\.json: .*other settings \({message}\)"):
             finetune(views, tmp_path / "run", tiny_model(), other)
     with pytest.raises(ValueError, match=r"other settings \(model\.use_source_light: False -> True\)"):
         finetune(views, tmp_path / "run", tiny_model(use_source_light=True), config)
     with pytest.raises(ValueError, match=r"other settings \(data_hash: '[0-9a-f]+' -> '[0-9a-f]+'\)"):
         finetune(load_relight_views([embedded_dataset("finetune/torus_jade")], resolution=16, min_lights=4),
                  tmp_path / "run", tiny_model(), config)
-    assert json.loads((tmp_path / "run" / "train_config.json").read_text()) == recorded  # left as it was
+    assert json.loads((tmp_path / "run" / "finetune_config.json").read_text()) == recorded  # left as it was
     missing = tmp_path / "run" / "checkpoints" / "step_00000001" / EMA_FILE
     missing.unlink()
     with pytest.raises(DamagedFileError, match=f"{missing}: missing"):

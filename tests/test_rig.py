@@ -11,7 +11,7 @@ from tiny_models import TINY_NVS, TINY_RELIGHT
 
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
-from diamond_sss.data.conventions import look_at_opengl_c2w, project_points
+from diamond_sss.data.conventions import look_at_opengl_c2w, mean_up_vector, project_points
 from diamond_sss.data.dataset import directions_from
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.diffusion.relight.config import RelightModelConfig
@@ -21,7 +21,7 @@ from diamond_sss.pipeline.rig import (
     ELEVATION_MARGIN_DEG,
     build_lattice,
     elevation_deg,
-    estimate_up,
+    place_directions,
     sampled_rig,
     spread_away,
 )
@@ -55,7 +55,7 @@ def test_up_and_elevation_of_upright_cameras():
     c2w = look_at_opengl_c2w(eyes, torch.zeros(3))
     flip = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
     w2c = torch.linalg.inv(c2w @ flip)  # OpenCV world-to-camera
-    assert torch.allclose(estimate_up(w2c), torch.tensor([0.0, 0, 1], dtype=torch.float64), atol=0.2)
+    assert torch.allclose(mean_up_vector(w2c), torch.tensor([0.0, 0, 1], dtype=torch.float64), atol=0.2)
     dirs = torch.nn.functional.normalize(eyes, dim=-1)
     expected = torch.rad2deg(torch.asin(eyes[:, 2] / eyes.norm(dim=-1)))
     assert torch.allclose(elevation_deg(dirs, torch.tensor([0.0, 0, 1])), expected, atol=1e-6)
@@ -66,7 +66,7 @@ def test_sampled_cameras_and_lights_sit_where_the_real_ones_could(sparse):
     cameras, lights = sampled_rig(capture, 5, 4)
     assert (len(cameras), len(lights)) == (5, 4)
     center = capture.bounds.center.double()
-    up = estimate_up(capture.viewmats)
+    up = mean_up_vector(capture.viewmats)
     real_dirs = directions_from(capture.camera_centers, capture.bounds.center).double()
     real_elev = elevation_deg(real_dirs, up)
     real_dist = (capture.camera_centers.double() - center).norm(dim=-1)
@@ -174,3 +174,15 @@ def test_a_one_image_capture_is_refused(tmp_path):
         run_pipeline(tmp_path, tmp_path / "run", regime="all", overrides=TRAIN,
                      config=PipelineConfig(augment=()), show_progress=False)
     assert not (tmp_path / "run" / "pipeline.json").exists()
+
+
+def test_placed_directions_stay_within_the_angle_of_a_real_one():
+    real = torch.nn.functional.normalize(torch.tensor([[1.0, 0, 0.2], [0, 1.0, 0.1], [-1.0, 0.2, 0.0]],
+                                                       dtype=torch.float64), dim=-1)
+    up = torch.tensor([0.0, 0, 1], dtype=torch.float64)
+    anywhere, _ = place_directions(real, up, 6)
+    near, nearest = place_directions(real, up, 6, max_angle_deg=25.0)
+    closest = torch.rad2deg(torch.acos((near @ real.T).amax(dim=1).clamp(-1, 1)))
+    assert len(near) == 6 and float(closest.max()) <= 25.0 + 1e-9 and float(closest.min()) > 5.0
+    assert torch.equal(nearest, torch.argmax(near @ real.T, dim=1))
+    assert float(torch.rad2deg(torch.acos((anywhere @ real.T).amax(dim=1).clamp(-1, 1))).max()) > 25.0

@@ -9,7 +9,7 @@ import pytest
 from diamond_sss.cli.main import main
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.training.averaging import averaging_start
-from diamond_sss.training.config import scale_schedule, schedule_for, short_schedule
+from diamond_sss.training.config import FIELDS, scale_schedule, schedule_for, short_schedule
 from diamond_sss.training.overrides import (
     load_run_config,
     make_config,
@@ -121,7 +121,7 @@ def test_train_iterations_scales_the_schedule_unless_kept(tmp_path, capsys, keep
     tiny = ["--set", "num_gaussians=100", "--set", "lambda_lpips=0", "--set", "raytrace_gaussians=16",
             "--set", "mv_pixels_per_pair=8", "--set", "batch_size=1", "--set", "device=cpu"]
     main(["train", "--data", str(tmp_path / "data"), "--out", str(run), "--iterations", "4", "--quiet",
-          "--set", "log_every=2", *tiny, *(["--keep-schedule"] if keep else [])])
+          "--preset", "diamond", "--set", "log_every=2", *tiny, *(["--keep-schedule"] if keep else [])])
     out = capsys.readouterr().out
     assert json.loads((run / "config.json").read_text())["schedule"]["iterations"] == 4  # written nested
     config = load_run_config(run).flat()
@@ -134,6 +134,39 @@ def test_train_iterations_scales_the_schedule_unless_kept(tmp_path, capsys, keep
         assert "densify.refine_start_iter 500->1" in " ".join(out.split())
         assert (config["densify_from_iter"], config["densify_until_iter"], config["checkpoint_every"]) == (1, 4, 1)
         assert (run / "checkpoints" / "latest.json").is_file()
+        args = ["train", "--data", str(tmp_path / "data"), "--out", str(run), "--iterations", "4", "--quiet",
+                "--set", "log_every=2", *tiny, "--resume"]
+        main([*args, "--preset", "diamond"])  # a run made with a named preset resumes with it (here: already done)
+        assert "trained 4 steps" in capsys.readouterr().out and load_run_config(run).flat() == config
+        with pytest.raises(SystemExit):
+            main(args)  # the default preset auto resolves to other settings: refused, naming them
+        assert "was trained with other settings" in (err := capsys.readouterr().err) and "sss_width: 32 -> 64" in err
+
+
+def test_config_shows_what_the_default_preset_resolves_to(capsys):
+    """``diamond-sss config`` lists the values `train` gives each key: under the default preset auto, the diamond
+    preset with the short-run settings for the run's length and capture; a named preset as it is, or scaled."""
+
+    def listed(*args: str) -> dict:
+        main(["config", "--json", *args])
+        return json.loads(capsys.readouterr().out)
+
+    def values(config) -> dict:
+        return {key: config.get(key) for key in FIELDS}
+
+    dense = listed()
+    assert dense == values(make_config("diamond", overrides=short_run_overrides(1000, dense=True)))
+    assert (dense["schedule.iterations"], dense["schedule.batch_size"], dense["shading.sss_width"]) == (1000, 2, 64)
+    assert listed("--preset", "auto", "--regime", "views=3,lights=3", "--iterations", "3000") == values(
+        make_config("diamond", overrides=short_run_overrides(3000)))
+    assert listed("--preset", "diamond") == listed("--preset", "paper") == values(make_config("diamond"))
+    assert listed("--preset", "sss3dgs", "--iterations", "1000") == values(
+        make_config("sss3dgs", overrides=scaled_run_schedule("sss3dgs", 1000)[0]))
+    main(["config"])
+    assert "preset 'auto' = diamond with the short-run settings for 1000 steps, regime all (a dense capture's)" in (
+        " ".join(capsys.readouterr().out.split()))
+    with pytest.raises(ValueError, match="preset 'auto' is the command line's"):
+        make_config("auto")
 
 
 def test_short_run_overrides_are_the_benchmarks_settings_under_the_config_files(tmp_path):
@@ -161,9 +194,12 @@ def test_short_run_overrides_are_the_benchmarks_settings_under_the_config_files(
         short_run_overrides(1000, config_file=best)
 
 
+@pytest.mark.parametrize("flag", [[], ["--short-run"], ["--short-run", "--preset", "auto"]])
 @pytest.mark.parametrize(("command", "regime"), [("train", "all"), ("train", "views=3,lights=3"),
                                                  ("run", "views=3,lights=3")])
-def test_short_run_flag_trains_with_the_short_run_settings(tmp_path, monkeypatch, capsys, command, regime):
+def test_the_default_preset_trains_with_the_short_run_settings(tmp_path, monkeypatch, capsys, command, regime, flag):
+    """No preset flag, --preset auto and the old --short-run give the same run: the diamond preset with the short-run
+    settings (a dense capture's on --regime all, the pipeline's final reconstruction's for run)."""
     import dataclasses
 
     import diamond_sss.pipeline.run as pipeline_run
@@ -174,10 +210,11 @@ def test_short_run_flag_trains_with_the_short_run_settings(tmp_path, monkeypatch
                         dataclasses.make_dataclass("R", ["steps", "seconds", "num_gaussians", "final_loss"])(1, 0, 1, 0))
     monkeypatch.setattr(pipeline_run, "run_pipeline", lambda data, out, **kwargs: seen.update(kwargs) or {})
     base = [command, "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--regime", regime, "--quiet"]
-    main([*base, "--short-run", "--iterations", "2000", "--set", "sss_width=32"])
+    main([*base, *flag, "--iterations", "2000", "--set", "sss_width=32"])
     expected = short_run_overrides(2000, dense=regime == "all", pipeline_final=command == "run")
     said = " ".join(capsys.readouterr().out.split())
-    assert "short-run settings for 2000 steps" in said
+    assert "preset auto = diamond with the short-run settings for 2000 steps" in said
+    assert seen["preset"] == "diamond"
     if command == "train":
         assert seen["overrides"] == expected and seen["sets"] == ["sss_width=32"]
     else:
@@ -185,16 +222,16 @@ def test_short_run_flag_trains_with_the_short_run_settings(tmp_path, monkeypatch
         assert seen["prelim_overrides"] == {**short_run_overrides(2000), "sss_width": 32}
         assert seen["config"].prelim_preset == "sss3dgs"  # the benchmarks' preliminary reconstruction
         assert "preliminary reconstruction (sss3dgs): the same settings without losses.photometric_error=rmse" in said
-        main([*base, "--short-run", "--prelim-preset", "diamond"])
+        main([*base, *flag, "--prelim-preset", "diamond"])
         assert seen["config"].prelim_preset == "diamond"
-    main([*base, "--short-run"])
+    main([*base, *flag])
     assert seen["overrides"]["schedule.iterations"] == 1000
     with pytest.raises(SystemExit):
-        main([*base, "--short-run", "--keep-schedule", "--iterations", "10"])
-    assert "give one of them" in capsys.readouterr().err
+        main([*base, *flag, "--keep-schedule", "--iterations", "10"])
+    assert ("give one of them" if flag else "keeps a named preset's schedule") in capsys.readouterr().err
     for steps in ("0", "-5"):
         with pytest.raises(SystemExit):
-            main([*base, "--short-run", "--iterations", steps])
+            main([*base, *flag, "--iterations", steps])
         assert f"--iterations must be a positive number of training steps, got {steps}" in capsys.readouterr().err
 
 
@@ -203,7 +240,8 @@ def test_pipeline_iterations_scale_the_schedule_unless_kept(tmp_path, monkeypatc
 
     seen = {}
     monkeypatch.setattr(pipeline_run, "run_pipeline", lambda data, out, **kwargs: seen.update(kwargs) or {})
-    base = ["run", "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--quiet", "--iterations", "1000"]
+    base = ["run", "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--quiet", "--iterations", "1000",
+            "--preset", "diamond"]
     main([*base, "--set", "densification_interval=20"])
     scaled, _ = scaled_run_schedule("diamond", 1000, sets=["densification_interval=20"])
     assert seen["overrides"] == {**scaled, "densification_interval": 20}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -32,8 +33,20 @@ from diamond_sss.synth.render import (
     plan_pairs,
     synthesize,
 )
-from diamond_sss.synth.scene import LightStageConfig, build_light_stage, interleaved_test_indices
-from diamond_sss.synth.shapes import build_shape, marching_tetrahedra, shape_names, sphere_field
+from diamond_sss.synth.scene import (
+    LightStageConfig,
+    build_light_stage,
+    interleaved_test_indices,
+    view_light_subsets,
+)
+from diamond_sss.synth.shapes import (
+    build_shape,
+    knot_field,
+    marching_tetrahedra,
+    shape_names,
+    sphere_field,
+    trefoil_curve,
+)
 from diamond_sss.synth.writer import FrameRecord, encode_rgba8, write_json, write_png, write_transforms
 
 needs_mitsuba = pytest.mark.skipif(importlib.util.find_spec("mitsuba") is None, reason="needs mitsuba")
@@ -51,7 +64,7 @@ def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
 # ----------------------------------------------------------------------------------------------- shapes
 
 
-@pytest.mark.parametrize("name", ["sphere", "torus", "blob", "bunny", "bust"])
+@pytest.mark.parametrize("name", ["sphere", "torus", "blob", "bunny", "bust", "knot"])
 def test_shapes_are_closed_oriented_and_fit_the_unit_sphere(name):
     mesh = build_shape(name, seed=3, resolution=40)
     directed = _edges(mesh.faces)
@@ -81,8 +94,23 @@ def test_shapes_deterministic_under_seed_and_blob_depends_on_it():
     assert a.vertices.shape != c.vertices.shape or not np.allclose(a.vertices, c.vertices)
 
 
+def test_knot_is_a_trefoil_tube_of_genus_one():
+    """The tube around a knot is a torus: Euler characteristic V - E + F = 0 (a sphere's is 2); the field is the
+    distance to the curve less the tube radius, so curve points lie ``scale * tube`` deep inside."""
+    np.testing.assert_allclose(trefoil_curve(np.array([0.0, np.pi / 2])), [[0.0, -1.0, 0.0], [1.0, 2.0, 1.0]],
+                               atol=1e-12)
+    field = knot_field(scale=0.3, tube=0.45)
+    on_curve = 0.3 * trefoil_curve(np.linspace(0.0, 2.0 * np.pi, 50))
+    np.testing.assert_allclose(field(on_curve), -0.3 * 0.45, atol=1e-3)
+    assert field(np.zeros((1, 3)))[0] > 0.0, "the knot's centre is a hole"
+    for name, euler in (("knot", 0), ("sphere", 2)):
+        mesh = build_shape(name, resolution=40)
+        edges = np.unique(np.sort(_edges(mesh.faces), axis=1), axis=0)
+        assert len(mesh.vertices) - len(edges) + len(mesh.faces) == euler, name
+
+
 def test_shape_registry_and_errors():
-    assert {"sphere", "torus", "blob", "bunny", "bust"} <= set(shape_names())
+    assert {"sphere", "torus", "blob", "bunny", "bust", "knot"} <= set(shape_names())
     with pytest.raises(ValueError, match="valid shapes: .*bunny"):
         build_shape("teapot")
     with pytest.raises(ValueError, match="resolution"):
@@ -154,6 +182,54 @@ def test_interleaved_test_indices_and_subset_selection():
     for bad in ("relight:3", "spin:2x2", "relight:50x2", ""):
         with pytest.raises(ValueError):
             parse_subset(bad, views=40, lights=24)
+
+
+def test_lights_per_view_plans_an_incomplete_lattice():
+    stage = LightStageConfig(views=10, lights=8, test_views=3, test_lights=2, lights_per_view=3, seed=4)
+    config = SynthConfig(shape="sphere", material="wax", out=Path("unused"), stage=stage, seed=4)
+    pairs = plan_pairs(config)
+    lights_of = {v: [l for view, l in pairs["train"] if view == v] for v in range(10)}
+    assert all(len(lights) == len(set(lights)) == 3 for lights in lights_of.values())
+    assert all(0 <= l < 8 for lights in lights_of.values() for l in lights)
+    assert len({tuple(lights) for lights in lights_of.values()}) > 1, "every view got the same lights"
+    assert plan_pairs(config) == pairs
+    assert plan_pairs(replace(config, stage=replace(stage, seed=5)))["train"] != pairs["train"]
+    assert pairs["test"] == [(v, l) for v in range(3) for l in range(2)], "the test split stays complete"
+    assert view_light_subsets(replace(stage, lights_per_view=None)) == [list(range(8))] * 10
+    assert len(plan_pairs(replace(config, stage=replace(stage, lights_per_view=8)))["train"]) == 80
+    # a subset of the incomplete lattice: captured pairs pass, an uncaptured one is named
+    captured = pairs["train"][4]
+    missing = next((v, l) for v in range(10) for l in range(8) if (v, l) not in pairs["train"])
+    subset = f"pair:{captured[0]}/{captured[1]}"
+    assert plan_pairs(replace(config, subset=subset))["train"] == [captured]
+    with pytest.raises(ValueError, match=rf"pairs \[{re.escape(str(missing))}\] .*lights_per_view=3 leaves uncaptured"):
+        plan_pairs(replace(config, subset=f"{subset},pair:{missing[0]}/{missing[1]}"))
+    for bad in (0, 9):
+        with pytest.raises(ValueError, match="lights_per_view must be in 1..8"):
+            replace(stage, lights_per_view=bad)
+
+
+def test_height_bands_bound_cameras_and_lights():
+    """A camera cap stopping 30 degrees below the horizon (z/r >= -0.5) and lights on the full sphere."""
+    config = LightStageConfig(views=40, lights=24, camera_radius=3.2, light_radius=4.5,
+                              camera_band=(-0.5, 0.95), light_band=(-1.0, 1.0), seed=21)
+    stage = build_light_stage(config)
+    eyes = np.concatenate([stage.train_c2w[:, :3, 3], stage.test_c2w[:, :3, 3]])
+    heights = eyes[:, 2] / np.linalg.norm(eyes, axis=1)
+    assert heights.min() >= -0.5 and heights.max() <= 0.95
+    assert heights.min() < -0.45 and heights.max() > 0.9, "the band is not spanned"
+    lights = np.concatenate([stage.train_lights, stage.test_lights])
+    np.testing.assert_allclose(np.linalg.norm(lights, axis=1), 4.5, rtol=1e-9)
+    assert lights[:, 2].min() < -0.9 * 4.5 and lights[:, 2].max() > 0.9 * 4.5
+    with pytest.raises(ValueError, match="height band"):
+        replace(config, camera_band=(0.5, -0.5))
+
+
+def test_pair_subset_terms():
+    assert parse_subset("pair:3/5,pair:0/0", views=4, lights=6) == {"pair": [(3, 5), (0, 0)]}
+    for bad in ("pair:4/0", "pair:0/6", "pair:1-2", "pair:a/1"):
+        with pytest.raises(ValueError, match="pair"):
+            parse_subset(bad, views=4, lights=6)
 
 
 # --------------------------------------------------------------------------------------------- writer
@@ -341,6 +417,27 @@ def test_cross_splits_pair_test_cameras_with_training_lights_and_back(tmp_path):
             np.testing.assert_allclose(frame["light_positions"], rig["lights"][light_set][lights])
             assert all(rel.startswith(f"{split}/") for rel in frame["file_paths"])
     assert image_seed(0, "novel_view", 0, 1) != image_seed(0, "novel_light", 0, 1) != image_seed(0, "test", 0, 1)
+
+
+@needs_mitsuba
+def test_cli_renders_another_rig_with_an_incomplete_lattice(tmp_path):
+    from diamond_sss.cli.main import main
+
+    main(["synth", "--shape", "sphere", "--material", "wax", "--out", str(tmp_path), "--views", "3", "--lights",
+          "4", "--lights-per-view", "2", "--test-views", "1", "--test-lights", "1", "--size", "8", "--spp", "2",
+          "--camera-radius", "3.2", "--fov-x-deg", "40", "--camera-band", "-0.5", "0.95", "--light-band", "-1", "1",
+          "--light-radius", "4.5", "--seed", "21"])
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    assert meta["lights_per_view"] == meta["stage"]["lights_per_view"] == 2
+    assert meta["stage"]["camera_band"] == [-0.5, 0.95] and meta["stage"]["light_band"] == [-1.0, 1.0]
+    frames = json.loads((tmp_path / "transforms_train.json").read_text())["frames"]
+    assert [len(f["file_paths"]) for f in frames] == [2, 2, 2]
+    planned = [[v, l] for v, lights in enumerate(view_light_subsets(LightStageConfig(
+        views=3, lights=4, lights_per_view=2, seed=21))) for l in lights]
+    assert meta["pairs"]["train"] == planned
+    lights = np.array(meta["lights"]["train"])
+    for view, frame in enumerate(frames):
+        np.testing.assert_allclose(frame["light_positions"], lights[[l for v, l in planned if v == view]])
 
 
 def test_cli_rejects_unknown_names_with_the_valid_ones(tmp_path):

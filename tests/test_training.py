@@ -15,13 +15,13 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.evaluation.evaluate import evaluate_scene
 from diamond_sss.gaussians.ply import import_ply
+from diamond_sss.runs.folder import load_scene
 from diamond_sss.scene.io import scene_from_tensors, scene_tensors
 from diamond_sss.scene.model import RelightableScene
 from diamond_sss.training.averaging import ParameterAverage, averaging_start
 from diamond_sss.training.checkpoint import optimizer_from_tensors, optimizer_to_tensors
 from diamond_sss.training.config import PRESETS, TrainConfig
 from diamond_sss.training.overrides import make_config
-from diamond_sss.training.run_folder import load_scene
 from diamond_sss.training.schedules import exponential_lr, linear_warmup, step_decay
 from diamond_sss.training.trainer import ImageSource, Trainer
 from diamond_sss.utils.io import atomic_save_safetensors, load_safetensors

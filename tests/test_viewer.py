@@ -131,7 +131,7 @@ def test_loopback_hosts_and_urls():
 @pytest.mark.parametrize("host, warned", [(None, False), ("0.0.0.0", True)])
 def test_serve_binds_loopback_by_default_and_warns_when_exposed(monkeypatch, capsys, caplog, host, warned):
     pytest.importorskip("viser", reason="needs viser (the 'viewer' extra)")
-    from diamond_sss.training import run_folder
+    from diamond_sss.runs import folder as run_folder
     from diamond_sss.viewer import server as server_module
 
     bound = {}

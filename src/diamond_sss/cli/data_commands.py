@@ -1,4 +1,4 @@
-"""``diamond-sss info`` and ``diamond-sss regimes``: inspect a data set and a capture regime."""
+"""``diamond-sss info``, ``regimes`` and ``subset``: inspect a data set and a capture regime, export a regime."""
 
 from __future__ import annotations
 
@@ -58,4 +58,31 @@ def regimes(data: Path, regime: str = "all", split: str = "train", seed: int = 0
     table.add_row("views", f"{len(selection.views)} of {dataset.num_views}: {selection.views}")
     table.add_row("lights", f"{len(selection.lights)} of {dataset.num_lights}: {selection.lights}")
     table.add_row("images", f"{len(selection.observations)} of {len(dataset)}")
+    if selection.note:
+        table.add_row("note", selection.note)
     Console().print(table)
+
+
+def subset(data: Path, out: Path, regime: str, split: str = "train", seed: int = 0) -> None:
+    """Write a capture holding only the images a regime selects, as a user's own sparse capture looks.
+
+    OUT gets transforms_<split>.json listing just those images (copied, with their masks and depth / normal maps),
+    the whole transforms_test.json with its images (so the export can be evaluated) and subset.json (source, regime,
+    selection). Built in a temporary folder and renamed into place; OUT must not exist.
+
+    Args:
+        data: data folder holding transforms_<split>.json.
+        out: folder to create.
+        regime: all-views-1-light | views=5%,lights=5% | views=5,lights=6 | images=10 (see `diamond-sss regimes`).
+        split: which transforms_<split>.json to select from.
+        seed: seed of the farthest-point sampling's first pick.
+    """
+    from diamond_sss.data.export import export_regime
+
+    result = export_regime(data, out, regime, split=split, seed=seed)
+    counts = ", ".join(f"{count} {name} images" for name, count in result.images.items())
+    print(f"{result.out}: {counts} (regime '{regime}', seed {seed}, views {result.selection.views}, "
+          f"lights {result.selection.lights})")
+    for note in (result.selection.note, result.note):
+        if note:
+            print(note)

@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import tyro
 
-from diamond_sss.cli.data_commands import info, regimes
+from diamond_sss.cli.data_commands import info, regimes, subset
 from diamond_sss.cli.demo import demo
 from diamond_sss.cli.model_commands import blend_models
 from diamond_sss.cli.nvs_commands import convert_free3d, finetune_nvs, nvs
@@ -22,10 +22,10 @@ from diamond_sss.errors import DataError
 
 def commands() -> dict[str, Callable[..., None]]:
     """The subcommands, by name."""
-    return {"demo": demo, "info": info, "regimes": regimes, "synth": synth, "config": config, "train": train,
-            "eval": evaluate, "render": render, "export": export, "view": view, "ablate": ablate, "run": run,
-            "tune": tune, "finetune-relight": finetune_relight, "relight": relight, "finetune-nvs": finetune_nvs,
-            "nvs": nvs, "convert-free3d": convert_free3d, "blend-models": blend_models}
+    return {"demo": demo, "info": info, "regimes": regimes, "subset": subset, "synth": synth, "config": config,
+            "train": train, "eval": evaluate, "render": render, "export": export, "view": view, "ablate": ablate,
+            "run": run, "tune": tune, "finetune-relight": finetune_relight, "relight": relight,
+            "finetune-nvs": finetune_nvs, "nvs": nvs, "convert-free3d": convert_free3d, "blend-models": blend_models}
 
 
 def configure_logging() -> None:

@@ -104,7 +104,7 @@ def nvs(
     guidance_scale: float = 1.0,
     seed: int = 0,
     cache: Path | None = None,
-    device: str = "cpu",
+    device: str = "auto",
     geometry: str | None = None,
 ) -> None:
     """Generate novel views of an object under a fixed light from one reference image (Free3D-style model).
@@ -126,14 +126,16 @@ def nvs(
         guidance_scale: classifier-free guidance scale (1: no guidance).
         seed: seed of the shared initial noise.
         cache: cache folder (default $DIAMOND_SSS_CACHE/nvs or ~/.cache/diamond_sss/nvs).
-        device: cpu or cuda.
+        device: auto (CUDA when available, else CPU) | cpu | cuda[:i].
         geometry: metric depth of the reference for models with the warp hint: a reconstruction run folder
             (holding model.safetensors) or 'maps' (depth maps stored with the data).
     """
     from diamond_sss.data.dataset import OLATDataset
     from diamond_sss.diffusion.geometry import geometry_source
     from diamond_sss.diffusion.nvs.pipeline import generate_novel_views, parse_targets
+    from diamond_sss.utils.device import resolve_device
 
+    device = str(resolve_device(device))
     manifest = generate_novel_views(
         data,
         out,

@@ -45,35 +45,52 @@ def config_from(config: type, options: Any, **rest: Any) -> Any:
     return config(**{f.name: getattr(options, f.name) for f in dataclasses.fields(options)}, **rest)
 
 
+PresetArg = Annotated[str, tyro.conf.arg(help=(
+    "auto (the diamond preset with the settings measured for the run's length and capture, "
+    "training.config.short_schedule, what --short-run gave before it became the default; at 3,000 steps on a dense "
+    "capture 5.5 dB over the diamond preset's schedule, DIAMOND-SSS issue 60) | diamond (supplement Tab. 3 / "
+    "Tab. 4 'Best', also named paper) | sss3dgs (Tab. 4 'Original'); a named preset keeps its own schedule, scaled "
+    "to --iterations"))]
+"""``--preset`` of ``train``, ``run`` and ``config``."""
+
+
 def schedule_overrides(preset: str, iterations: int | None, *, keep_schedule: bool = False, short_run: bool = False,
                        dense: bool = False, pipeline_final: bool = False, config_file: Path | None = None,
-                       sets: Sequence[str] = ()) -> tuple[dict[str, Any], str | None]:
-    """The config overrides (dotted keys) of ``--iterations``, ``--keep-schedule`` and ``--short-run``, and a line
-    saying what they changed (``None`` when nothing was asked).
+                       sets: Sequence[str] = ()) -> tuple[str, dict[str, Any], str | None]:
+    """The preset that ``preset`` resolves to, the config overrides (dotted keys) of ``--iterations``,
+    ``--keep-schedule`` and ``--short-run``, and a line saying what they changed (``None`` when nothing was asked).
 
-    ``short_run``: :func:`diamond_sss.training.overrides.short_run_overrides` for ``iterations`` steps (default
+    ``preset`` :data:`~diamond_sss.training.config.AUTO_PRESET` (the command line's default) resolves to ``diamond``
+    with the short-run settings, as ``short_run`` gives them to a named preset:
+    :func:`diamond_sss.training.overrides.short_run_overrides` for ``iterations`` steps (default
     :data:`~diamond_sss.training.config.SHORT_SCHEDULE`'s 1000; a ``dense`` capture's or a ``pipeline_final``
-    reconstruction's settings with them); otherwise the step-valued keys of ``preset`` (+ ``config_file``) scaled to
+    reconstruction's settings with them). Otherwise the step-valued keys of ``preset`` (+ ``config_file``) scaled to
     ``iterations`` (:func:`~diamond_sss.training.overrides.scaled_run_schedule`; keys in ``sets`` keep their value),
     or with ``keep_schedule`` only the step count changed.
     """
-    from diamond_sss.training.config import SHORT_SCHEDULE
+    from diamond_sss.training.config import AUTO_PRESET, SHORT_SCHEDULE
     from diamond_sss.training.overrides import scaled_run_schedule, short_run_overrides
 
     if iterations is not None and iterations <= 0:
         raise ValueError(f"--iterations must be a positive number of training steps, got {iterations}")
+    auto = preset == AUTO_PRESET
     if short_run and keep_schedule:
         raise ValueError("--keep-schedule keeps the preset's schedule and --short-run brings its own: give one of them")
-    if short_run:
+    if auto and keep_schedule:
+        raise ValueError("--keep-schedule keeps a named preset's schedule (--preset diamond | sss3dgs); the default "
+                         "preset auto brings the short-run schedule, scaled to --iterations")
+    if auto or short_run:
         steps = SHORT_SCHEDULE["iterations"] if iterations is None else iterations
         settings = short_run_overrides(steps, dense=dense, pipeline_final=pipeline_final, config_file=config_file)
         listed = ", ".join(f"{key}={value}" for key, value in settings.items() if key != "schedule.iterations")
-        return settings, f"short-run settings for {steps} steps (training.config.short_schedule): {listed}"
+        said = (f"{'preset auto = diamond with the ' if auto else ''}short-run settings for {steps} steps "
+                f"(training.config.short_schedule): {listed}")
+        return "diamond" if auto else preset, settings, said
     if iterations is None:
-        return {}, None
+        return preset, {}, None
     if keep_schedule:
-        return {"schedule.iterations": iterations}, None
+        return preset, {"schedule.iterations": iterations}, None
     scaled, changes = scaled_run_schedule(preset, iterations, config_file=config_file, sets=sets)
     listed = ", ".join(f"{key} {old}->{new}" for key, (old, new) in changes.items())
-    return scaled, (f"schedule scaled to {iterations} steps (--keep-schedule keeps the preset's): "
-                    f"{listed or 'no change'}")
+    return preset, scaled, (f"schedule scaled to {iterations} steps (--keep-schedule keeps the preset's): "
+                            f"{listed or 'no change'}")

@@ -10,14 +10,14 @@ from typing import Annotated
 import tyro
 from rich.console import Console
 
-from diamond_sss.cli.options import SetArg, config_from, options_of, schedule_overrides
+from diamond_sss.cli.options import PresetArg, SetArg, config_from, options_of, schedule_overrides
 from diamond_sss.pipeline.config import SHORT_RUN_PRELIM_PRESET, PipelineConfig
 
 PipelineOptions = options_of(PipelineConfig, exclude=("augment",))
 """Every :class:`PipelineConfig` field but ``augment`` (given as text: ``--augment auto``), as ``--flag``."""
 
 
-def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lights=5%", preset: str = "diamond",
+def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lights=5%", preset: PresetArg = "auto",
         augment: str = "auto", iterations: int | None = None, keep_schedule: bool = False, short_run: bool = False,
         set_: SetArg = [], seed: int = 0,  # noqa: B006
         json: bool = False, quiet: bool = False,
@@ -32,34 +32,39 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         out: pipeline folder.
         split: training split.
         regime: capture regime of the real images (e.g. views=5%,lights=5%).
-        preset: reconstruction preset of the final reconstruction (and of the preliminary one, unless
-            --prelim-preset or --short-run says otherwise).
         augment: auto (the stages whose model ships with the package) | none | nvs | relight | nvs,relight.
-        iterations: training steps of each reconstruction (default: the preset's); the preset's step-valued keys
-            are scaled by iterations / the preset's iterations, as `diamond-sss train --iterations` does.
-        keep_schedule: with --iterations, keep the preset's step-valued keys as they are.
-        short_run: the settings measured for runs of 1,000 to 10,000 steps on 64-px captures, with which the
-            demo and benchmarks/regimes.py run the pipeline (training.config.short_schedule), scaled to --iterations
-            (default 1000): the final reconstruction with PIPELINE_FINAL_RUN, the preliminary one as theirs, the
-            sss3dgs preset (unless --prelim-preset) with Eq. A.1's L1; --set's keys come after them. The
-            benchmarks reuse their `diamond-sss train --preset sss3dgs --short-run` run of the same regime and
-            seed (the SSS-3DGS row) as the preliminary one: give it as --prelim-run to do the same.
+        iterations: training steps of each reconstruction (default: 1000 under --preset auto, the preset's
+            otherwise); the short-run settings' or the named preset's step-valued keys are scaled by iterations /
+            their iterations, as `diamond-sss train --iterations` does.
+        keep_schedule: with --iterations and a named --preset, keep the preset's step-valued keys as they are.
+        short_run: kept for old scripts, the default preset auto runs with these settings: the settings measured for
+            runs of 1,000 to 10,000 steps on 64-px captures, with which the demo and benchmarks/regimes.py run the
+            pipeline (training.config.short_schedule), scaled to --iterations (default 1000): the final
+            reconstruction (diamond under --preset auto, else the named preset) with PIPELINE_FINAL_RUN, the
+            preliminary one as theirs, the sss3dgs preset (unless --prelim-preset) with Eq. A.1's L1; --set's keys
+            come after them. A named --preset without --short-run trains both reconstructions with that preset
+            (the preliminary one with --prelim-preset if given). The benchmarks reuse their `diamond-sss train
+            --preset sss3dgs --short-run` run of the same regime and seed (the SSS-3DGS row) as the preliminary
+            one: give it as --prelim-run to do the same.
         seed: seed of the regime, reconstructions and diffusion noise.
         json: print the final metrics as JSON.
         quiet: no progress bars.
         pipeline: the pipeline's settings (PipelineConfig).
     """
     from diamond_sss.pipeline.run import parse_augment, run_pipeline
+    from diamond_sss.training.config import AUTO_PRESET
     from diamond_sss.training.overrides import parse_sets
 
-    schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
-                                        pipeline_final=True, sets=set_)
+    short = short_run or preset == AUTO_PRESET
+    preset, schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
+                                                pipeline_final=True, sets=set_)
     overrides = {**schedule, **parse_sets(set_)}
     cfg = config_from(PipelineConfig, pipeline, augment=parse_augment(augment))
     prelim_overrides = None
-    if short_run:
-        cfg = replace(cfg, prelim_preset=cfg.prelim_preset or SHORT_RUN_PRELIM_PRESET)
-        prelim_schedule, _ = schedule_overrides(cfg.prelim_preset, iterations, short_run=True)
+    if short:
+        prelim_preset, prelim_schedule, _ = schedule_overrides(cfg.prelim_preset or SHORT_RUN_PRELIM_PRESET,
+                                                               iterations, short_run=True)
+        cfg = replace(cfg, prelim_preset=prelim_preset)
         prelim_overrides = {**prelim_schedule, **parse_sets(set_)}
         final_only = ", ".join(f"{key}={schedule[key]}" for key in schedule if key not in prelim_schedule)
         said = (f"final reconstruction ({preset}): {said}\npreliminary reconstruction ({cfg.prelim_preset}): the same "

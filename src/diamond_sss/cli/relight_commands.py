@@ -30,7 +30,7 @@ def finetune_relight(
     """Fine-tune the relighting diffusion model on the embedded fine-tuning objects (view fixed, <= 7%).
 
     Writes <out>/model (config.json + model.safetensors, the EMA weights), <out>/checkpoints/step_*,
-    <out>/log.jsonl, <out>/selection.json (the images used) and <out>/train_config.json.
+    <out>/train_log.jsonl, <out>/selection.json (the images used) and <out>/finetune_config.json.
 
     Args:
         out: run folder.
@@ -69,13 +69,8 @@ def finetune_relight(
     console = Console()
     lpips = load_lpips(lpips_weights)
 
-    def log(record: dict) -> None:
-        if not quiet:
-            console.print(
-                " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in record.items())
-            )
-
-    folder = finetune(views, out, relight_model, config, lpips=lpips, resume=resume, log=log)
+    folder = finetune(views, out, relight_model, config, lpips=lpips, resume=resume,
+                      log=(lambda _: None) if quiet else console.print)
     console.print(f"relighting model -> {folder}")
 
 
@@ -92,7 +87,7 @@ def relight(
     samples: int = 8,
     seed: int = 0,
     cache: Path | None = None,
-    device: str = "cpu",
+    device: str = "auto",
 ) -> None:
     """Relight one view of a capture from its source light to target lights with the diffusion model.
 
@@ -114,7 +109,7 @@ def relight(
         samples: samples averaged per image (test-time ensemble).
         seed: noise seed.
         cache: cache folder (default $DIAMOND_SSS_CACHE/relight or ~/.cache/diamond_sss/relight).
-        device: cpu | cuda.
+        device: auto (CUDA when available, else CPU) | cpu | cuda[:i].
     """
     from diamond_sss.data.dataset import OLATDataset
     from diamond_sss.diffusion.common.cache import OutputCache
@@ -125,6 +120,7 @@ def relight(
         relight_view,
         write_relit,
     )
+    from diamond_sss.utils.device import resolve_device
 
     try:
         lights = [int(x) for x in target_lights.split(",") if x.strip()]
@@ -134,6 +130,7 @@ def relight(
         ) from error
     if not lights:
         raise ValueError("no target lights given (--target-lights 3,5,7)")
+    device = str(resolve_device(device))
     source = geometry_source(geometry, device=device, seed=seed)
     relit = relight_view(
         load_model(model, device),

@@ -24,6 +24,9 @@ def synth(
     camera_radius: float = 4.0,
     light_radius: float = 5.0,
     fov_x_deg: float = 32.0,
+    camera_band: tuple[float, float] = (-0.35, 0.85),
+    light_band: tuple[float, float] = (-0.5, 0.95),
+    lights_per_view: int | None = None,
     noise_seed: int = 0,
     train: bool = True,
     cross_splits: bool = False,
@@ -35,7 +38,7 @@ def synth(
     split uses novel cameras and novel lights, interleaved between the training ones.
 
     Args:
-        shape: Procedural shape: blob, bunny, bust, sphere or torus.
+        shape: Procedural shape: blob, bunny, bust, knot, sphere or torus.
         material: Translucent material: glazed_wax, jade, marble, skin, soap or wax.
         out: Output folder of the object.
         views: Training camera views on a sphere around the object.
@@ -47,10 +50,14 @@ def synth(
         seed: Object seed (camera/light azimuths, blob shape, per-image sampler seeds).
         maps: Also write per-view depth (camera z) and world-normal maps.
         subset: Render only part of the training lattice, e.g. "relight:3x10,novelview:10x3"
-            (3 views x 10 lights each, plus 3 lights x 10 views each).
+            (3 views x 10 lights each, plus 3 lights x 10 views each), or "pair:3/5,pair:7/2" (single images).
         camera_radius: Distance of the cameras from the object centre (object radius 1).
         light_radius: Distance of the lights from the object centre.
         fov_x_deg: Horizontal field of view in degrees.
+        camera_band: Heights z/r the cameras span (-0.5: 30 degrees below the horizon; -1 1: the full sphere).
+        light_band: Heights z/r the lights span.
+        lights_per_view: Light each training view by a seeded random K of the training lights only (an
+            incomplete lattice, recorded in meta.json); default: every light. The test split stays complete.
         noise_seed: Non-zero: the same images with independent Monte Carlo noise (a second render of a
             capture measures its noise ceiling: see benchmarks/quality.py).
         train: Render the training lattice (--no-train: only the test split).
@@ -76,7 +83,10 @@ def synth(
         camera_radius=camera_radius,
         light_radius=light_radius,
         fov_x_deg=fov_x_deg,
+        camera_band=camera_band,
+        light_band=light_band,
         seed=seed,
+        lights_per_view=lights_per_view,
     )
     config = SynthConfig(
         shape=shape,

@@ -9,10 +9,10 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from diamond_sss.cli.options import SetArg, given_overrides, schedule_overrides
+from diamond_sss.cli.options import PresetArg, SetArg, given_overrides, schedule_overrides
 
 
-def train(data: Path, out: Path, split: str = "train", regime: str = "all", preset: str = "diamond",
+def train(data: Path, out: Path, split: str = "train", regime: str = "all", preset: PresetArg = "auto",
           iterations: int | None = None, keep_schedule: bool = False, short_run: bool = False,
           config: Path | None = None,
           set_: SetArg = [], seed: int | None = None, resume: bool = False,  # noqa: B006
@@ -24,14 +24,15 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
         out: run folder (config, regime, checkpoints, TensorBoard logs, model.safetensors).
         split: training split.
         regime: capture regime: all | all-views-1-light | views=5%,lights=5% | views=5,lights=6 | images=10.
-        preset: hyperparameter preset: diamond (Tab. 3, with multi-view losses) or sss3dgs (Tab. 4 original).
-        iterations: training steps; the preset's (and --config's) step-valued keys (densification
-            start, stop and interval, opacity reset, learning rate schedule, checkpoint and log intervals)
-            are scaled by iterations / the preset's iterations.
-        keep_schedule: with --iterations, keep the preset's step-valued keys as they are.
-        short_run: the settings measured for runs of 1,000 to 10,000 steps on 64-px captures, with which the
-            demo and the benchmarks train (training.config.short_schedule; with --regime all a dense capture's),
-            their schedule scaled to --iterations (default 1000); --config's keys and --set's come after them.
+        iterations: training steps (default: 1000 under --preset auto, the preset's otherwise); the short-run
+            settings' or the named preset's (and --config's) step-valued keys (densification start, stop and
+            interval, opacity reset, learning rate schedule, checkpoint and log intervals) are scaled by
+            iterations / their iterations.
+        keep_schedule: with --iterations and a named --preset, keep the preset's step-valued keys as they are.
+        short_run: kept for old scripts, the default preset auto trains with these settings: the settings measured
+            for runs of 1,000 to 10,000 steps on 64-px captures (training.config.short_schedule; with --regime all
+            a dense capture's), scaled to --iterations (default 1000); with a named --preset, that preset with
+            them; --config's keys and --set's come after them.
         config: JSON file of config keys (e.g. the best configuration written by `diamond-sss tune`).
         seed: seed of the regime selection, initialisation and every random draw (schedule.seed; default:
             --config's, else the preset's).
@@ -42,8 +43,8 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
     from diamond_sss.training.run import train_run
 
     console = Console(soft_wrap=True)
-    schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
-                                        dense=regime == "all", config_file=config, sets=set_)
+    preset, schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
+                                                dense=regime == "all", config_file=config, sets=set_)
     if said:
         console.print(said)
     overrides = {**schedule, **given_overrides(seed=seed, device=device)}
@@ -53,20 +54,26 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
                   f"final loss {result.final_loss:.4f} -> {out / 'model.safetensors'}")
 
 
-def config(preset: str = "diamond", json: bool = False) -> None:
-    """List every config key (for --set and --config) with its value under --preset and its meaning.
+def config(preset: PresetArg = "auto", iterations: int | None = None, regime: str = "all", json: bool = False) -> None:
+    """List every config key (for --set and --config) with the value `train` gives it and its meaning.
 
     Args:
-        preset: hyperparameter preset whose values to show: diamond or sss3dgs.
+        iterations: training steps, as `train --iterations` (default: 1000 under --preset auto, the preset's
+            otherwise).
+        regime: capture regime, as `train --regime` (under --preset auto, all takes a dense capture's settings).
         json: print a JSON object of key -> value instead of a table.
     """
     from diamond_sss.training.overrides import describe_config
 
-    rows = describe_config(preset)
+    resolved, overrides, _ = schedule_overrides(preset, iterations, dense=regime == "all")
+    rows = describe_config(resolved, overrides)
     if json:
         print(json_module.dumps({key: value for key, _, value, _ in rows}, indent=2))
         return
-    table = Table(title=f"config keys, preset '{preset}' (change with --set key=value or --set flat_name=value)")
+    shown = f"'{preset}'" + (f" = {resolved} with the short-run settings for {overrides['schedule.iterations']} "
+                              f"steps, regime {regime}" + (" (a dense capture's)" if regime == "all" else "")
+                              if resolved != preset else "")
+    table = Table(title=f"config keys, preset {shown} (change with --set key=value or --set flat_name=value)")
     table.add_column("key", no_wrap=True)
     table.add_column("value")
     table.add_column("meaning [flat name]")
@@ -159,7 +166,7 @@ def export(run: Path, ply: Path) -> None:
         ply: output .ply path (opens in common 3DGS viewers; colour from the base colour).
     """
     from diamond_sss.gaussians.ply import export_ply
-    from diamond_sss.training.run_folder import load_scene
+    from diamond_sss.runs.folder import load_scene
 
     scene, _ = load_scene(run)
     export_ply(scene.gaussians, ply)

@@ -110,6 +110,15 @@ def camera_centers(w2c: Tensor) -> Tensor:
     return -(rot.transpose(-1, -2) @ trans.unsqueeze(-1)).squeeze(-1)
 
 
+def mean_up_vector(w2c: Tensor) -> Tensor:
+    """The mean up vector of OpenCV cameras ``w2c [N,4,4]`` (``-`` their y axis in world), unit, float64 ``[3]``;
+    world +Z when the mean is shorter than 0.5 (cameras rolled every way)."""
+    up = -w2c[:, 1, :3].double().mean(0)
+    if float(up.norm()) < 0.5:
+        return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, device=w2c.device)
+    return up / up.norm()
+
+
 def world_to_camera(points: Tensor, w2c: Tensor) -> Tensor:
     """Transform world points into camera (OpenCV) coordinates. ``[...,N,3], [...,4,4] -> [...,N,3]``."""
     return points @ w2c[..., :3, :3].transpose(-1, -2) + w2c[..., None, :3, 3]

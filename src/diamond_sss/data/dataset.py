@@ -219,7 +219,8 @@ class OLATDataset:
     @cached_property
     def bounds(self) -> SceneBounds:
         """Bounding sphere and near/far, computed once from the cameras (see :func:`scene_bounds`)."""
-        return scene_bounds(self.viewmats, self.intrinsics, self.width, self.height)
+        return scene_bounds(self.viewmats, self.intrinsics, torch.tensor([c.width for c in self.cameras]),
+                            torch.tensor([c.height for c in self.cameras]))
 
     # ------------------------------------------------------------------ images
     def load(self, index: int) -> ImageSample:
@@ -352,8 +353,8 @@ def _epoch_permutation(seed: int, epoch: int, count: int) -> tuple[int, ...]:
     return tuple(torch.randperm(count, generator=generator).tolist())
 
 
-def scene_bounds(viewmats: Tensor, Ks: Tensor, width: int, height: int) -> SceneBounds:
-    """Bounding sphere of what every camera sees, from the cameras alone.
+def scene_bounds(viewmats: Tensor, Ks: Tensor, width: int | Tensor, height: int | Tensor) -> SceneBounds:
+    """Bounding sphere of what every camera sees, from the cameras alone (image size in pixels, or per camera ``[V]``).
 
     Centre: the least-squares point nearest to all optical axes, ``argmin_x sum_v ||(I - d_v d_v^T)(x - c_v)||^2``.
     Radius: the largest sphere at that centre inside every camera's field of view,

@@ -11,11 +11,15 @@ Spec strings:
 A count larger than what the capture has is an error naming both numbers, never a silent cap.
 
 Views and lights are picked by farthest-point sampling on their unit directions from the scene centre,
-started from a seeded random choice; only observations that exist are used.
+started from a seeded random choice; only observations that exist are used. On an incomplete lattice (each view
+lit by some of the lights only) ``views=V,lights=L`` keeps those picks when all ``V x L`` images were captured;
+otherwise it picks views and lights captured together (:func:`captured_together`), and when fewer than ``V x L``
+images exist among any it finds, ``RegimeSelection.note`` says how many and why.
 """
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import asdict, dataclass
 
@@ -24,16 +28,20 @@ from torch import Tensor
 
 from diamond_sss.data.dataset import OLATDataset, directions_from
 
+logger = logging.getLogger(__name__)
+
 
 @dataclass(frozen=True)
 class RegimeSelection:
-    """The outcome of a regime: lattice view and light indices and the chosen observation indices."""
+    """The outcome of a regime: lattice view and light indices and the chosen observation indices; ``note`` says why
+    fewer images than asked were selected (``None`` when there is nothing to say)."""
 
     spec: str
     seed: int
     views: list[int]
     lights: list[int]
     observations: list[int]
+    note: str | None = None
 
     def to_json(self) -> dict:
         return {**asdict(self), "images": len(self.observations)}
@@ -126,14 +134,84 @@ def select_regime(dataset: OLATDataset, spec: str, seed: int = 0) -> RegimeSelec
     views = [int(captured_views[i]) for i in farthest_point_order(view_dirs[captured_views], num_views, generator)]
     lights = [int(captured_lights[i]) for i in farthest_point_order(light_dirs[captured_lights], num_lights,
                                                                      generator)]
+    note = None
+    if not bool(present[views][:, lights].all()):
+        views, lights = captured_together(present, lights, num_views, view_dirs, light_dirs, generator)
+        found = int(present[views][:, lights].sum())
+        if found < num_views * num_lights:
+            note = (f"{found} of {num_views} x {num_lights} = {num_views * num_lights} images: the search found no "
+                    f"{num_views} views imaged under the same {num_lights} lights in {dataset.json_path} (an "
+                    "incomplete lattice); these views and lights share the most captured images it found")
+            logger.warning("regime '%s' (seed %d) selects %s", spec, seed, note)
     light_set = set(lights)
     view_set = set(views)
     chosen = [i for i, obs in enumerate(dataset.observations) if obs.view in view_set and obs.light in light_set]
-    if not chosen:
-        raise ValueError(f"regime '{spec}' (seed {seed}) picked views {sorted(views)} and lights {sorted(lights)}, "
-                         f"of which {dataset.json_path} has no image: ask for more views or lights, another seed, "
-                         "or 'images=N'")
-    return RegimeSelection(spec=spec, seed=seed, views=sorted(views), lights=sorted(lights), observations=chosen)
+    return RegimeSelection(spec=spec, seed=seed, views=sorted(views), lights=sorted(lights), observations=chosen,
+                           note=note)
+
+
+def most_covered(coverage: Tensor, directions: Tensor, count: int, generator: torch.Generator) -> list[int]:
+    """``count`` rows with the largest ``coverage [N]`` (captured images among the other kind's picks), spread by
+    farthest-point sampling on ``directions [N,3]`` among equal coverage: each pick takes the highest coverage left,
+    then the largest smallest distance to the rows already picked (the first: a random row drawn from ``generator``).
+    Their summed coverage is the largest any ``count`` rows have."""
+    left = torch.ones(len(coverage), dtype=torch.bool)
+    nearest = torch.full((len(coverage),), float("inf"), dtype=directions.dtype)
+    chosen: list[int] = []
+    for _ in range(min(count, len(coverage))):
+        top = torch.nonzero(left & (coverage == coverage[left].max())).flatten()
+        pick = int(top[torch.randint(len(top), (1,), generator=generator)] if not chosen
+                   else top[torch.argmax(nearest[top])])
+        chosen.append(pick)
+        left[pick] = False
+        nearest = torch.minimum(nearest, (directions - directions[pick]).norm(dim=-1))
+    return chosen
+
+
+def lights_sharing_views(present: Tensor, first: int, num_views: int, num_lights: int,
+                         light_dirs: Tensor) -> list[int] | None:
+    """``num_lights`` lights, starting at ``first``, under all of which at least ``num_views`` views were imaged
+    (``present [V,L]``): each next light is the one farthest (smallest distance to those picked, on ``light_dirs``)
+    among the lights that keep ``num_views`` such views; ``None`` when none does."""
+    lights = [first]
+    common = present[:, first].clone()
+    while len(lights) < num_lights:
+        keeps = (present & common[:, None]).sum(0) >= num_views
+        keeps[lights] = False
+        if not keeps.any():
+            return None
+        candidates = torch.nonzero(keeps).flatten()
+        gaps = torch.cdist(light_dirs[candidates], light_dirs[lights]).min(dim=1).values
+        pick = int(candidates[torch.argmax(gaps)])
+        lights.append(pick)
+        common &= present[:, pick]
+    return lights if int(common.sum()) >= num_views else None
+
+
+def captured_together(present: Tensor, lights: list[int], num_views: int, view_dirs: Tensor, light_dirs: Tensor,
+                      generator: torch.Generator, rounds: int = 8) -> tuple[list[int], list[int]]:
+    """Views and lights of an incomplete lattice ``present [V,L]`` that share the most captured images found.
+
+    Lights first: :func:`lights_sharing_views` started at each of ``lights`` (farthest-point picks), then at every
+    other captured light; the first start that succeeds gives ``len(lights)`` lights and the ``num_views`` views
+    imaged under all of them, spread by farthest-point sampling (:func:`most_covered`). When no start succeeds:
+    from ``lights``, the ``num_views`` views imaged under the most of them, then the lights imaged in the most of
+    those views, and so on while the count of captured ``(view, light)`` pairs grows (at most ``rounds`` times)."""
+    num_lights = len(lights)
+    captured = torch.nonzero(present.any(0)).flatten().tolist()
+    for first in lights + [light for light in captured if light not in lights]:
+        shared = lights_sharing_views(present, first, num_views, num_lights, light_dirs)
+        if shared is not None:
+            return most_covered(present[:, shared].sum(1), view_dirs, num_views, generator), shared
+    best_pairs, best = -1, ([], lights)
+    for _ in range(rounds):
+        views = most_covered(present[:, lights].sum(1), view_dirs, num_views, generator)
+        pairs = int(present[views][:, lights].sum())
+        if pairs <= best_pairs:
+            break
+        best_pairs, best = pairs, (views, lights)
+        lights = most_covered(present[views].sum(0), light_dirs, num_lights, generator)
+    return best
 
 
 def _key_value(part: str, spec: str) -> tuple[str, str]:

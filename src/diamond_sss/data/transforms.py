@@ -148,12 +148,7 @@ def parse_transforms(path: Path) -> ParsedTransforms:
     and lights with no image in this file (e.g. generated data, or the novel views of a regime); they take
     the first lattice indices, in order.
     """
-    try:
-        meta = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise data_error(path, f"invalid JSON ({exc})") from exc
-    if not isinstance(meta, dict):
-        raise data_error(path, "expected a JSON object at the top level")
+    meta = _read_object(path)
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
         raise data_error(path, "expected a non-empty list", key="frames")
@@ -174,18 +169,24 @@ def parse_transforms(path: Path) -> ParsedTransforms:
                             premultiplied)
 
 
-def parse_rig(path: Path) -> tuple[list[DeclaredCamera], list[DeclaredLight]]:
-    """A light stage's layout without images: the top-level ``cameras`` and ``lights`` of a transforms file (as in
-    :func:`parse_transforms`; ``frames``, if any, are not read). Each must be a non-empty list."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: no such rig file (a transforms file with top-level 'cameras' and 'lights')")
+def _read_object(path: Path) -> dict:
+    """The JSON object in ``path``; a :class:`DataError` naming the file when it is not one."""
     try:
         meta = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise data_error(path, f"invalid JSON ({exc})") from exc
     if not isinstance(meta, dict):
         raise data_error(path, "expected a JSON object at the top level")
+    return meta
+
+
+def parse_rig(path: Path) -> tuple[list[DeclaredCamera], list[DeclaredLight]]:
+    """A light stage's layout without images: the top-level ``cameras`` and ``lights`` of a transforms file (as in
+    :func:`parse_transforms`; ``frames``, if any, are not read). Each must be a non-empty list."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: no such rig file (a transforms file with top-level 'cameras' and 'lights')")
+    meta = _read_object(path)
     for key in ("cameras", "lights"):
         if not isinstance(meta.get(key), list) or not meta[key]:
             raise data_error(path, "a rig file needs a non-empty list of the light stage's " + key, key=key)

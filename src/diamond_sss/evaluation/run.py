@@ -20,7 +20,7 @@ from diamond_sss.evaluation.evaluate import (
     save_decomposition_figure,
     write_evaluation,
 )
-from diamond_sss.training.run_folder import load_scene
+from diamond_sss.runs.folder import load_scene
 from diamond_sss.utils.device import resolve_device
 from diamond_sss.utils.io import atomic_write_bytes, read_json
 

@@ -17,8 +17,8 @@ from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.evaluation.evaluate import render_observation
 from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.run import evaluate_run
+from diamond_sss.runs.folder import load_scene
 from diamond_sss.training.run import train_run
-from diamond_sss.training.run_folder import load_scene
 from diamond_sss.utils.io import atomic_write_json, atomic_write_text
 
 VARIANTS: dict[str, tuple[str, dict[str, float]]] = {

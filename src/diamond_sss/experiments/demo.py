@@ -21,10 +21,11 @@ from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.pipeline.config import PipelineConfig
 from diamond_sss.pipeline.run import parse_augment, run_pipeline
+from diamond_sss.runs.folder import load_scene
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
-from diamond_sss.training.run_folder import load_scene, move_aside_if_trained_otherwise
+from diamond_sss.training.run_folder import move_aside_if_trained_otherwise
 from diamond_sss.utils.io import atomic_write_text
 from diamond_sss.utils.processes import BackgroundCall, ChildProgress, StepReporter, usable_cores
 

@@ -7,6 +7,8 @@ divides by the mask's sum and is exactly 0 for an empty mask.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -70,7 +72,38 @@ def mask_entropy_loss(alpha: Tensor, eps: float = DEFAULT_EPS) -> Tensor:
     return -(a * torch.log(a) + (1.0 - a) * torch.log1p(-a)).mean()
 
 
-def bilateral_smoothness_loss(attribute: Tensor, image: Tensor, mask: Tensor | None = None) -> Tensor:
+@dataclass(frozen=True)
+class EdgeWeights:
+    """What Eq. A.5 takes from the image and the mask, per direction (x, then y): the pair mask ``M_d`` ``[B,H',W']``,
+    the edge weight ``e_d = exp(-mean_c |d_d I|)`` and ``sum M_d``. One step's smoothed attributes share them
+    (:func:`edge_weights`), so that the image's differences are taken once, not once per attribute."""
+
+    directions: tuple[tuple[Tensor, Tensor, Tensor], ...]
+    image_shape: torch.Size
+
+
+def edge_weights(image: Tensor, mask: Tensor | None = None, like: Tensor | None = None) -> EdgeWeights:
+    """:class:`EdgeWeights` of ``image [B,H,W,C']`` and ``mask [B,H,W,1]`` (all ones if None), in the dtype and on
+    the device of ``like`` (default ``image``)."""
+    _check_map("image", image)
+    like = image if like is None else like
+    if mask is None:
+        mask = torch.ones_like(image[..., :1], dtype=like.dtype)
+    _check_map("mask", mask, 1)
+    _check_same_pixels("mask", mask, "image", image)
+    mask = mask.to(like)
+    image = image.to(like)
+    directions = []
+    for dim in (2, 1):
+        length = image.shape[dim] - 1
+        grad_image = (image.narrow(dim, 1, length) - image.narrow(dim, 0, length)).abs().mean(-1)
+        pair_mask = (mask.narrow(dim, 1, length) * mask.narrow(dim, 0, length)).squeeze(-1)
+        directions.append((pair_mask, torch.exp(-grad_image), pair_mask.sum()))
+    return EdgeWeights(tuple(directions), image.shape)
+
+
+def bilateral_smoothness_loss(attribute: Tensor, image: Tensor, mask: Tensor | None = None,
+                              edges: EdgeWeights | None = None) -> Tensor:
     """Eq. A.5, edge-aware smoothness of an attribute map (base colour, roughness, metallic, s).
 
     With forward differences ``d_x f(i,j) = f(i,j+1) - f(i,j)`` (and ``d_y`` along rows),
@@ -80,25 +113,21 @@ def bilateral_smoothness_loss(attribute: Tensor, image: Tensor, mask: Tensor | N
 
     where ``M_d`` is the product of the mask at both pixels of a difference (all ones if ``mask`` is
     None). Summing the two directions gives the L1 norm of the gradient. ``attribute [B,H,W,C]``,
-    ``image [B,H,W,C']``, ``mask [B,H,W,1]`` -> scalar.
+    ``image [B,H,W,C']``, ``mask [B,H,W,1]`` -> scalar. ``edges``: :func:`edge_weights` of ``image`` and ``mask``,
+    made once for several attributes (the same values as without).
     """
     _check_map("attribute", attribute)
-    _check_map("image", image)
     _check_same_pixels("attribute", attribute, "image", image)
-    if mask is None:
-        mask = torch.ones_like(attribute[..., :1])
-    _check_map("mask", mask, 1)
-    _check_same_pixels("mask", mask, "image", image)
-    mask = mask.to(attribute)
-    image = image.to(attribute)
+    if edges is None:
+        edges = edge_weights(image, mask, like=attribute)
+    elif edges.image_shape != image.shape:
+        raise ValueError(f"edges were made for an image of shape {tuple(edges.image_shape)}, got {tuple(image.shape)}")
     total = attribute.new_zeros(())
-    for dim in (2, 1):
+    for dim, (pair_mask, edge, pairs) in zip((2, 1), edges.directions, strict=True):
         length = attribute.shape[dim] - 1
         grad_attr = (attribute.narrow(dim, 1, length) - attribute.narrow(dim, 0, length)).abs().mean(-1)
-        grad_image = (image.narrow(dim, 1, length) - image.narrow(dim, 0, length)).abs().mean(-1)
-        pair_mask = (mask.narrow(dim, 1, length) * mask.narrow(dim, 0, length)).squeeze(-1)
-        weighted = pair_mask * grad_attr * torch.exp(-grad_image)
-        total = total + safe_ratio(weighted.sum(), pair_mask.sum())
+        weighted = pair_mask * grad_attr * edge
+        total = total + safe_ratio(weighted.sum(), pairs)
     return total
 
 

@@ -19,7 +19,7 @@ import torch
 
 from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.data.dataset import OLATDataset
-from diamond_sss.data.images import load_rgba
+from diamond_sss.data.images import load_rgba, resize_area
 from diamond_sss.diffusion.common.manifest import GeneratedImage
 from diamond_sss.pipeline.capture import check_on_lattice
 from diamond_sss.scene.model import RelightableScene, SceneRender
@@ -43,24 +43,30 @@ def render_lattice_image(scene: RelightableScene, lattice: OLATDataset, view: in
                             lit.position[None].to(device), lit.intensity[None].to(device))
 
 
-def load_generated(item: GeneratedImage, lattice: OLATDataset) -> tuple[torch.Tensor, torch.Tensor]:
-    """Linear RGB and mask of a generated image, checked against the size of its lattice view."""
+def load_generated(item: GeneratedImage, lattice: OLATDataset,
+                   smaller: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Linear RGB and mask of a generated image, checked against the size of its lattice view (``smaller``: at most
+    that size, as a diffusion model's resolution on a larger capture)."""
     rgb, mask = load_rgba(item.image, item.mask, premultiplied=True)
     camera = lattice.cameras[item.view]
-    if (rgb.shape[1], rgb.shape[0]) != (camera.width, camera.height):
-        raise ValueError(f"{item.image}: generated image is {rgb.shape[1]}x{rgb.shape[0]}, the lattice's view "
-                         f"{item.view} is {camera.width}x{camera.height}")
+    height, width = rgb.shape[:2]
+    larger = width > camera.width or height > camera.height
+    if larger or (not smaller and (width, height) != (camera.width, camera.height)):
+        raise ValueError(f"{item.image}: generated image is {width}x{height}, the lattice's view {item.view} is "
+                         f"{camera.width}x{camera.height}{' (it may be smaller, not larger)' if smaller else ''}")
     return rgb, mask
 
 
 def render_errors(scene: RelightableScene, lattice: OLATDataset, items: list[GeneratedImage]) -> list[float]:
-    """``e_i`` of each generated image against ``scene`` rendered at its view and light of ``lattice``."""
+    """``e_i`` of each generated image against ``scene`` rendered at its view and light of ``lattice`` (area-downsampled
+    to the image's size)."""
     errors = []
     for item in check_on_lattice(items, lattice):
-        rgb, mask = load_generated(item, lattice)
+        rgb, mask = load_generated(item, lattice, smaller=True)
         render = render_lattice_image(scene, lattice, item.view, item.light)
-        rendered = render.radiance[0].cpu()
-        union = torch.maximum(mask, render.gbuffer.alpha[0].cpu()).clamp(0.0, 1.0)
+        height, width = rgb.shape[:2]
+        rendered = resize_area(render.radiance[0].cpu(), height, width)
+        union = torch.maximum(mask, resize_area(render.gbuffer.alpha[0].cpu(), height, width)).clamp(0.0, 1.0)
         difference = (linear_to_srgb(rgb.clamp_min(0.0)) - linear_to_srgb(rendered.clamp_min(0.0))).abs()
         errors.append(float((difference * union).sum() / (3.0 * union.sum()).clamp_min(1.0)))
     return errors

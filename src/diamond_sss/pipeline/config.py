@@ -22,7 +22,8 @@ class PipelineConfig:
     prelim_iterations: int | None = described(None, "training steps of the preliminary reconstruction, its "
                                                     "schedule scaled to them (default: its settings' steps)")
     prelim_preset: str | None = described(None, "preset of the preliminary reconstruction (default: the final "
-                                                "one's; with `run --short-run`, sss3dgs)")
+                                                "one's; under `run`'s default preset auto or with --short-run, "
+                                                "sss3dgs)")
     prelim_run: str | None = described(None, "a finished reconstruction of the same real images (a `train` run "
                                              "folder with this regime and seed) reused as the preliminary one")
     rounds: int = described(1, "rounds of the pipeline: each round after the first takes the previous round's "
@@ -37,6 +38,8 @@ class PipelineConfig:
                                     "generate on (only its sparse images) and no rig is given")
     rig_lights: int = described(8, "lights placed around the real ones when the capture has no lattice to "
                                    "generate on and no rig is given")
+    rig_view_angle: float = described(0.0, "placed cameras lie within this angle (degrees) of the nearest real "
+                                           "camera (0: anywhere in the real cameras' band)")
     nvs_views: int = described(12, "at most this many missing views generated per real light (0: all)")
     relight_lights: int = described(8, "at most this many missing lights generated per view (0: all)")
     nvs_model: str | None = described(None, "folder of a novel-view model (default: the shipped one)")
@@ -46,6 +49,9 @@ class PipelineConfig:
                                                "capture's stored depth maps, e.g. a depth sensor's; or a "
                                                "reconstruction run folder); default: the preliminary "
                                                "reconstruction's render")
+    nvs_canonical: bool = described(False, "give the novel-view prior the cameras in its own rig's frame (object "
+                                           "at the origin, +Z up, cameras at its training distance) instead of "
+                                           "the capture's")
     nvs_steps: int = described(1, "DDIM steps of the novel-view model (the shipped model is best with 1)")
     relight_steps: int = described(1, "DDIM steps of the relighting model (the shipped model is best with 1)")
     relight_samples: int = described(8, "relighting samples averaged per image (test-time ensemble)")

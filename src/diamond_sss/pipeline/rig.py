@@ -32,6 +32,7 @@ from diamond_sss.data.conventions import (
     intrinsics_from_fov,
     intrinsics_matrix,
     look_at_opengl_c2w,
+    mean_up_vector,
     opencv_w2c_to_opengl_c2w,
     opengl_c2w_to_opencv_w2c,
     project_points,
@@ -62,15 +63,6 @@ class LatticeSource:
     split: str
     new_views: tuple[int, ...] = ()
     new_lights: tuple[int, ...] = ()
-
-
-def estimate_up(w2c: Tensor) -> Tensor:
-    """The mean up vector of OpenCV cameras ``w2c [N,4,4]`` (``-`` their y axis in world), unit ``[3]``; world +Z
-    when it is shorter than 0.5 (cameras rolled every way)."""
-    up = -w2c[:, 1, :3].double().mean(0)
-    if float(up.norm()) < 0.5:
-        return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-    return up / up.norm()
 
 
 def elevation_deg(directions: Tensor, up: Tensor) -> Tensor:
@@ -107,17 +99,21 @@ def spread_away(candidates: Tensor, fixed: Tensor, count: int) -> list[int]:
     return chosen
 
 
-def place_directions(real: Tensor, up: Tensor, count: int, margin_deg: float = ELEVATION_MARGIN_DEG
-                     ) -> tuple[Tensor, Tensor]:
+def place_directions(real: Tensor, up: Tensor, count: int, margin_deg: float = ELEVATION_MARGIN_DEG,
+                     max_angle_deg: float = 0.0) -> tuple[Tensor, Tensor]:
     """``count`` unit directions in the elevation band of the unit ``real [N,3]`` directions widened by
-    ``margin_deg`` (clipped to +-90), spread away from them (:func:`spread_away` over :data:`CANDIDATES`), and
-    for each the index of its angularly nearest real direction: ``([count,3], [count])``."""
+    ``margin_deg`` (clipped to +-90), within ``max_angle_deg`` of the nearest real direction (0: anywhere), spread
+    away from them (:func:`spread_away` over :data:`CANDIDATES`), and for each the index of its angularly nearest
+    real direction: ``([count,3], [count])``."""
     elevations = elevation_deg(real, up)
     low = max(-90.0, float(elevations.min()) - margin_deg)
     high = min(90.0, float(elevations.max()) + margin_deg)
     candidates = fibonacci_sphere(CANDIDATES)
     candidate_elevations = elevation_deg(candidates, up)
-    candidates = candidates[(candidate_elevations >= low) & (candidate_elevations <= high)]
+    keep = (candidate_elevations >= low) & (candidate_elevations <= high)
+    if max_angle_deg > 0.0:
+        keep &= (candidates @ real.double().T).amax(dim=1) >= math.cos(math.radians(max_angle_deg))
+    candidates = candidates[keep]
     placed = candidates[spread_away(candidates, real.double(), count)]
     nearest = torch.argmax(placed @ real.double().T, dim=1) if len(placed) else torch.zeros(0, dtype=torch.long)
     return placed, nearest
@@ -136,14 +132,15 @@ def light_entry(position: Tensor, intensity: Tensor) -> dict:
     return {"position": position.double().tolist(), "intensity": intensity.double().tolist()}
 
 
-def sampled_rig(capture: OLATDataset, views: int, lights: int) -> tuple[list[dict], list[dict]]:
-    """``views`` new cameras and ``lights`` new lights around ``capture`` (full resolution), as ``cameras`` /
-    ``lights`` entries (see the module docstring)."""
+def sampled_rig(capture: OLATDataset, views: int, lights: int, max_view_angle_deg: float = 0.0
+                ) -> tuple[list[dict], list[dict]]:
+    """``views`` new cameras (each within ``max_view_angle_deg`` of a real one; 0: anywhere) and ``lights`` new
+    lights around ``capture`` (full resolution), as ``cameras`` / ``lights`` entries (see the module docstring)."""
     center = capture.bounds.center.double()
-    up = estimate_up(capture.viewmats)
+    up = mean_up_vector(capture.viewmats)
     centers = capture.camera_centers.double()
     real_dirs = directions_from(centers, center).double()
-    directions, nearest = place_directions(real_dirs, up, views)
+    directions, nearest = place_directions(real_dirs, up, views, max_angle_deg=max_view_angle_deg)
     cameras = []
     for direction, source in zip(directions, nearest.tolist()):
         eye = center + float((centers[source] - center).norm()) * direction
@@ -258,16 +255,17 @@ def check_cameras(cameras: list[dict], capture: OLATDataset, source: str) -> Non
 
 
 def build_lattice(folder: Path, data: Path, split: str, observations: Sequence[int], *, rig_file: str | None,
-                  views: int, lights: int, downscale: float = 1.0) -> tuple[LatticeSource, OLATDataset]:
+                  views: int, lights: int, max_view_angle_deg: float = 0.0, downscale: float = 1.0
+                  ) -> tuple[LatticeSource, OLATDataset]:
     """Write the generation lattice of capture ``data`` [``split``] into ``folder`` (from ``rig_file``, or
-    ``views`` cameras and ``lights`` lights sampled) and read it back at ``downscale``."""
+    ``views`` cameras and ``lights`` lights sampled: :func:`sampled_rig`) and read it back at ``downscale``."""
     capture = OLATDataset(data, split)
     if rig_file is not None:
         path = Path(rig_file)
         cameras, new_lights = rig_from_file(path, capture)
         source = f"rig {path}"
     else:
-        cameras, new_lights = sampled_rig(capture, views, lights)
+        cameras, new_lights = sampled_rig(capture, views, lights, max_view_angle_deg)
         source = f"cameras and lights sampled around {capture.json_path}"
     check_cameras(cameras, capture, source)
     json_path = write_lattice(folder, capture, observations, cameras, new_lights)

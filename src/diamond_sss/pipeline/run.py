@@ -292,8 +292,8 @@ class PipelineContext:
 
 
 def checked_config(config: PipelineConfig | None) -> PipelineConfig:
-    """``config`` (default: the defaults) once its values are checked, its ``device`` resolved (``auto``: CUDA when
-    available, else CPU); a bad one is a ``ValueError`` naming the key."""
+    """``config`` (default: the defaults) once its values are checked and a ``device`` of ``auto`` resolved (CUDA when
+    available, else CPU); a bad value is a ``ValueError`` naming the key."""
     cfg = config or PipelineConfig()
     unknown = set(cfg.augment) - set(AUGMENTS)
     if unknown:
@@ -310,6 +310,9 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
     if cfg.prelim_iterations is not None and cfg.prelim_iterations <= 0:
         raise ValueError(f"pipeline config 'prelim_iterations' (--prelim-iterations) must be a positive number of "
                          f"training steps, got {cfg.prelim_iterations}")
+    if not (math.isfinite(cfg.rig_view_angle) and 0.0 <= cfg.rig_view_angle <= 180.0):
+        raise ValueError(f"pipeline config 'rig_view_angle' (--rig-view-angle) must be in [0, 180] degrees, got "
+                         f"{cfg.rig_view_angle}")
     for key, least in (("rig_views", 0), ("rig_lights", 0), ("nvs_views", 0), ("relight_lights", 0), ("nvs_steps", 1), ("relight_steps", 1),
                        ("relight_samples", 1)):
         if getattr(cfg, key) < least:
@@ -325,11 +328,7 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
             geometry_source(cfg.nvs_geometry)
         except GeometryError as exc:
             raise ValueError(f"pipeline config 'nvs_geometry': {exc}") from exc
-    try:
-        device = resolve_device(cfg.device)  # auto: CUDA when available
-    except ValueError as exc:
-        raise ValueError(f"pipeline config 'device' (--device): {exc}") from exc
-    return replace(cfg, device=str(device))
+    return replace(cfg, device=str(resolve_device(cfg.device))) if cfg.device == "auto" else cfg
 
 
 def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, overrides: dict[str, Any] | None,
@@ -399,7 +398,8 @@ def generation_lattice(data: Path, split: str, out: Path, real: OLATDataset, sel
                     "placing %d cameras and %d lights around the real ones", real.json_path,
                     len(selection.observations), real.num_views, real.num_lights, cfg.rig_views, cfg.rig_lights)
     source, lattice = build_lattice(Path(out) / "rig", Path(data), split, selection.observations, rig_file=cfg.rig,
-                                    views=cfg.rig_views, lights=cfg.rig_lights, downscale=real.downscale)
+                                    views=cfg.rig_views, lights=cfg.rig_lights,
+                                    max_view_angle_deg=cfg.rig_view_angle, downscale=real.downscale)
     return source, lattice
 
 
@@ -487,7 +487,8 @@ def nvs_stage(ctx: PipelineContext) -> dict:
                                  group, split=source.split, model_dir=cfg.nvs_model,
                                  steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=ctx.seed,
                                  cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
-                                 device=cfg.device, geometry=geometry, downscale=ctx.train_cfg.runtime.downscale)
+                                 device=cfg.device, geometry=geometry, downscale=ctx.train_cfg.runtime.downscale,
+                                 canonical=cfg.nvs_canonical)
             calls += 1
     return {"targets": len(targets), "calls": calls}
 

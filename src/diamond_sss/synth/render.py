@@ -31,7 +31,13 @@ import torch
 from diamond_sss.data.conventions import opengl_c2w_to_opencv_w2c
 from diamond_sss.data.errors import DataError
 from diamond_sss.synth.materials import TranslucentMaterial, get_material
-from diamond_sss.synth.scene import LightStage, LightStageConfig, build_light_stage, interleaved_test_indices
+from diamond_sss.synth.scene import (
+    LightStage,
+    LightStageConfig,
+    build_light_stage,
+    interleaved_test_indices,
+    view_light_subsets,
+)
 from diamond_sss.synth.shapes import TriangleMesh, build_shape
 from diamond_sss.synth.writer import (
     FrameRecord,
@@ -248,18 +254,27 @@ def compute_exposure(
 
 
 def parse_subset(spec: str, views: int, lights: int) -> dict[str, list[tuple[int, int]]]:
-    """Training-lattice pairs selected by ``spec``: comma-separated ``kind:VxL`` terms.
+    """Training-lattice pairs selected by ``spec``: comma-separated ``kind:VxL`` or ``pair:V/L`` terms.
 
     ``relight:VxL``: V evenly spread views (indices ``floor((i + 1/2) views / V)``), each under L evenly
     spread lights (fixed view, varying light). ``novelview:VxL``: L lights at ``floor(j lights / L)``, each
-    seen from V views at ``floor(i views / V)`` (fixed light, varying view). Returns pairs per term.
+    seen from V views at ``floor(i views / V)`` (fixed light, varying view). ``pair:V/L``: the one image of
+    view V under light L (0-based lattice indices; repeat the term for more). Returns pairs per kind.
     """
     out: dict[str, list[tuple[int, int]]] = {}
     for term in filter(None, (t.strip() for t in spec.split(","))):
         kind, _, size = term.partition(":")
+        if kind == "pair":
+            view, _, light = size.partition("/")
+            if not (view.isdigit() and light.isdigit()):
+                raise ValueError(f"bad subset term {term!r}; expected 'pair:V/L' with lattice indices V and L")
+            if not (int(view) < views and int(light) < lights):
+                raise ValueError(f"subset term {term!r} needs a view in 0..{views - 1} and a light in 0..{lights - 1}")
+            out.setdefault("pair", []).append((int(view), int(light)))
+            continue
         n_views, _, n_lights = size.partition("x")
         if kind not in ("relight", "novelview") or not (n_views.isdigit() and n_lights.isdigit()):
-            raise ValueError(f"bad subset term {term!r}; expected 'relight:VxL' or 'novelview:VxL'")
+            raise ValueError(f"bad subset term {term!r}; expected 'relight:VxL', 'novelview:VxL' or 'pair:V/L'")
         nv, nl = int(n_views), int(n_lights)
         if not (1 <= nv <= views and 1 <= nl <= lights):
             raise ValueError(f"subset term {term!r} needs 1..{views} views and 1..{lights} lights")
@@ -324,18 +339,27 @@ def noise_reference_config(data: Path, out: Path, noise_seed: int = 1, cross_spl
 
 
 def plan_pairs(config: SynthConfig) -> dict[str, list[tuple[int, int]]]:
-    """``(view, light)`` pairs rendered per split: the full (or subset) training lattice, the full test lattice
+    """``(view, light)`` pairs rendered per split: the training lattice (every view under every light, or under its
+    ``lights_per_view`` random lights: :func:`view_light_subsets`), or the ``subset`` of it; the full test lattice
     (novel views x novel lights; empty when either count is 0) and, with ``cross_splits``, ``novel_view`` (every
     test view under ``test_lights`` evenly spread training lights) and ``novel_light`` (``test_views`` evenly spread
-    training views under every test light)."""
+    training views under every test light).
+
+    A ``subset`` pair that the incomplete lattice did not capture is an error naming it."""
     st = config.stage
+    lattice = [(v, l) for v, lights in enumerate(view_light_subsets(st)) for l in lights]
     if not config.train:
         train = []
     elif config.subset:
         selected = parse_subset(config.subset, st.views, st.lights)
         train = sorted({pair for pairs in selected.values() for pair in pairs})
+        missing = sorted(set(train) - set(lattice))
+        if missing:
+            raise ValueError(f"subset {config.subset!r} asks for (view, light) pairs {missing[:5]} "
+                             f"({len(missing)} in all) that lights_per_view={st.lights_per_view} leaves uncaptured; "
+                             "pick pairs of the incomplete lattice (see meta.json 'pairs')")
     else:
-        train = [(v, l) for v in range(st.views) for l in range(st.lights)]
+        train = lattice
     test = [(v, l) for v in range(st.test_views) for l in range(st.test_lights)]
     pairs = {"train": train, "test": test}
     if config.cross_splits and test:
@@ -392,6 +416,7 @@ def synthesize(config: SynthConfig, on_image: Callable[[], None] | None = None) 
         "stage": asdict(config.stage),
         "cameras": {"train": stage.train_c2w.tolist(), "test": stage.test_c2w.tolist()},
         "lights": {"train": stage.train_lights.tolist(), "test": stage.test_lights.tolist()},
+        "lights_per_view": config.stage.lights_per_view,
         "subset": config.subset,
         "subset_pairs": parse_subset(config.subset, config.stage.views, config.stage.lights)
         if config.subset

@@ -21,7 +21,12 @@ GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
 @dataclass(frozen=True)
 class LightStageConfig:
-    """Sizes and placement of the capture rig (scene units, object inside the unit sphere)."""
+    """Sizes and placement of the capture rig (scene units, object inside the unit sphere).
+
+    Bands are heights ``z / r`` (``-0.5``: 30 degrees below the horizon). ``lights_per_view`` K: each training
+    view is lit by a seeded random K of the training lights (an incomplete lattice, :func:`view_light_subsets`);
+    ``None``: by every light.
+    """
 
     views: int = 40
     lights: int = 24
@@ -33,6 +38,7 @@ class LightStageConfig:
     camera_band: tuple[float, float] = (-0.35, 0.85)
     light_band: tuple[float, float] = (-0.5, 0.95)
     seed: int = 0
+    lights_per_view: int | None = None
 
     def __post_init__(self) -> None:
         if self.views < 1 or self.lights < 1:
@@ -44,6 +50,9 @@ class LightStageConfig:
         for band in (self.camera_band, self.light_band):
             if not -1.0 <= band[0] < band[1] <= 1.0:
                 raise ValueError(f"a height band must satisfy -1 <= z_min < z_max <= 1, got {band}")
+        if self.lights_per_view is not None and not 1 <= self.lights_per_view <= self.lights:
+            raise ValueError(f"lights_per_view must be in 1..{self.lights} (the training lights), "
+                             f"got {self.lights_per_view}")
 
 
 @dataclass(frozen=True)
@@ -85,6 +94,18 @@ def split_spiral(
     is_test = np.zeros(len(points), dtype=bool)
     is_test[test_idx] = True
     return points[~is_test], points[is_test]
+
+
+def view_light_subsets(config: LightStageConfig) -> list[list[int]]:
+    """Per training view, the sorted training-light indices that light it.
+
+    Every light when ``lights_per_view`` is ``None``; else K lights drawn without replacement by a generator
+    seeded with ``(config.seed, view)``, so a view's subset depends only on the seed and the view index.
+    """
+    if config.lights_per_view is None:
+        return [list(range(config.lights)) for _ in range(config.views)]
+    return [sorted(int(light) for light in np.random.default_rng([config.seed, view]).choice(
+        config.lights, config.lights_per_view, replace=False)) for view in range(config.views)]
 
 
 def cameras_looking_at_origin(eyes: np.ndarray) -> np.ndarray:

@@ -131,6 +131,29 @@ def bust_field() -> Field:
     return union_field(parts, blend=0.08)
 
 
+def trefoil_curve(t: np.ndarray) -> np.ndarray:
+    """Trefoil knot ``c(t) = (sin t + 2 sin 2t, cos t - 2 cos 2t, -sin 3t)``, ``t in [0, 2 pi)`` -> ``[N,3]``
+    (``max |c| = 3``; distinct strands stay more than 1.2 apart)."""
+    return np.stack([np.sin(t) + 2.0 * np.sin(2.0 * t), np.cos(t) - 2.0 * np.cos(2.0 * t), -np.sin(3.0 * t)], axis=-1)
+
+
+def knot_field(scale: float = 0.3, tube: float = 0.45, segments: int = 256) -> Field:
+    """Signed distance to a trefoil-knot tube: ``min_k dist(p, segment_k) - scale tube``, the segments a closed
+    polyline through ``scale c(2 pi k / segments)`` (:func:`trefoil_curve`); ``tube`` in curve units (< 0.6 keeps
+    the strands apart)."""
+    nodes = scale * trefoil_curve(np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False))
+    starts, axes = nodes, np.roll(nodes, -1, axis=0) - nodes
+
+    def field(p: np.ndarray) -> np.ndarray:
+        nearest = np.full(p.shape[:-1], np.inf)
+        for start, axis in zip(starts, axes, strict=True):
+            t = np.clip(((p - start) @ axis) / (axis @ axis), 0.0, 1.0)
+            nearest = np.minimum(nearest, np.linalg.norm(p - start - t[..., None] * axis, axis=-1))
+        return nearest - scale * tube
+
+    return field
+
+
 def field_gradient(field: Field, points: np.ndarray, step: float = 1e-4) -> np.ndarray:
     """Central-difference gradient of ``field`` at ``points [N,3]`` -> ``[N,3]``."""
     grad = np.empty_like(points)
@@ -146,7 +169,9 @@ def marching_tetrahedra(field: Field, resolution: int, bound: float) -> Triangle
 
     Each cube is split into 6 tetrahedra; a tetrahedron with 1 or 3 inside corners emits one triangle,
     with 2 inside corners a quad (two triangles). Vertices on shared grid edges are welded, so the mesh
-    is watertight when the surface stays inside the grid. Faces are oriented along the field gradient.
+    is watertight when the surface stays inside the grid. Faces point outward by the tetrahedron's corner
+    order: with corners ``(a, b, c, d)`` as emitted, a face keeps its order iff ``det(b - a, c - a, d - a) > 0``
+    (on grid positions, never degenerate) and ``a`` is inside; sliver faces are oriented like their neighbours.
     """
     if resolution < 4:
         raise ValueError(f"resolution must be >= 4, got {resolution}")
@@ -174,6 +199,10 @@ def marching_tetrahedra(field: Field, resolution: int, bound: float) -> Triangle
     order = np.argsort(~key, axis=1, kind="stable")
     t = np.take_along_axis(tets, order, axis=1)
 
+    corners = grid[t]
+    positive = np.linalg.det(corners[:, 1:] - corners[:, :1]) > 0
+    # a (the first corner) is inside except when 3 corners are: then it is the one outside
+    keep = positive == (count != 3)
     single = count != 2
     a, b, c, d = t[single].T
     tri_edges = [np.stack([np.stack([a, b], 1), np.stack([a, c], 1), np.stack([a, d], 1)], 1)]
@@ -181,6 +210,7 @@ def marching_tetrahedra(field: Field, resolution: int, bound: float) -> Triangle
     ac, ad, bd, bc = (np.stack(e, 1) for e in ((a, c), (a, d), (b, d), (b, c)))
     tri_edges += [np.stack([ac, ad, bd], 1), np.stack([ac, bd, bc], 1)]
     edges = np.concatenate(tri_edges, axis=0)  # [F, 3, 2] grid-vertex pairs
+    keep = np.concatenate([keep[single], keep[~single], keep[~single]])
 
     edges = np.sort(edges, axis=-1)
     edge_keys = edges[..., 0] * (n**3) + edges[..., 1]
@@ -191,12 +221,9 @@ def marching_tetrahedra(field: Field, resolution: int, bound: float) -> Triangle
     weight = (v0 / (v0 - v1))[:, None]
     vertices = grid[i0] + weight * (grid[i1] - grid[i0])
 
+    faces[~keep] = faces[~keep][:, [0, 2, 1]]
     tri = vertices[faces]
-    face_normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    outward = field_gradient(field, tri.mean(axis=1))
-    flip = (face_normal * outward).sum(axis=1) < 0
-    faces[flip] = faces[flip][:, [0, 2, 1]]
-    area = np.linalg.norm(face_normal, axis=1)
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     faces = faces[area > 1e-14]
 
     normals = field_gradient(field, vertices)
@@ -233,12 +260,17 @@ def _bust(seed: int) -> Field:
     return bust_field()
 
 
+def _knot(seed: int) -> Field:
+    return knot_field()
+
+
 SHAPES: dict[str, Callable[[int], Field]] = {
     "sphere": _sphere,
     "torus": _torus,
     "blob": _blob,
     "bunny": _bunny,
     "bust": _bust,
+    "knot": _knot,
 }
 
 

@@ -1,7 +1,7 @@
-"""Atomic, resumable checkpoints in ``step_<N>`` folders (``N`` zero-padded to 8 digits; older runs with
-7-digit names are still found and ordered by their number).
+"""Atomic, resumable checkpoints of the scene trainer in ``step_<N>`` folders
+(:mod:`diamond_sss.utils.step_folders`; the diffusion fine-tunes' are in ``diffusion/common/checkpoints.py``).
 
-Scene trainer (:func:`save_checkpoint`), layout of ``<run>/checkpoints``::
+Layout of ``<run>/checkpoints`` (:func:`save_checkpoint`)::
 
     step_00000500/scene.safetensors      raw Gaussian parameters, MLP weights, log light scale
     step_00000500/optim.safetensors      Adam moments of every optimiser, keyed ``<optimizer>/<slot>``
@@ -9,9 +9,6 @@ Scene trainer (:func:`save_checkpoint`), layout of ``<run>/checkpoints``::
     step_00000500/average.safetensors    the running mean of the scene tensors (``schedule.average_last``, when begun)
     step_00000500/state.json             step, optimiser hyperparameters, strategy scalars
     latest.json                          {"step": 500, "dir": "step_00000500"}
-
-Diffusion fine-tunes (:func:`save_accelerate_checkpoint`): ``accelerator.save_state`` plus ``extra.json``
-in ``<root>/step_<N>``.
 
 A checkpoint folder is written under a temporary name and renamed into place (then ``latest.json`` is
 replaced atomically), so a kill at any moment leaves the previous checkpoint usable.
@@ -21,12 +18,10 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -39,27 +34,9 @@ from diamond_sss.utils.io import (
     load_safetensors,
     read_json,
 )
+from diamond_sss.utils.step_folders import step_folder_name, step_folders
 
 logger = logging.getLogger(__name__)
-
-if TYPE_CHECKING:
-    from accelerate import Accelerator
-
-_STEP_DIR = re.compile(r"^step_(\d+)$")
-
-
-def step_folder_name(step: int) -> str:
-    """Name of the checkpoint folder of ``step`` (``step_00000500``)."""
-    return f"step_{step:08d}"
-
-
-def _checkpoints(root: Path, marker: str | None = None) -> list[Path]:
-    """``step_<N>`` folders under ``root`` (holding ``marker`` when given), oldest first by ``N`` (any zero
-    padding)."""
-    if not root.is_dir():
-        return []
-    found = [(int(m.group(1)), p) for p in root.iterdir() if p.is_dir() and (m := _STEP_DIR.match(p.name))]
-    return [p for _, p in sorted(found) if marker is None or (p / marker).is_file()]
 
 
 @dataclass
@@ -141,7 +118,7 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
         if tmp.exists():
             shutil.rmtree(tmp)
     atomic_write_json(root / "latest.json", {"step": step, "dir": name})
-    for old in _checkpoints(root, "state.json")[:-keep] if keep > 0 else []:
+    for old in step_folders(root, "state.json")[:-keep] if keep > 0 else []:
         shutil.rmtree(old)
     return final
 
@@ -149,7 +126,7 @@ def save_checkpoint(run_dir: Path, step: int, scene_tensors: dict[str, Tensor],
 def checkpoint_folders(run_dir: Path) -> list[Path]:
     """Checkpoint folders of a run, newest first (the one ``latest.json`` names first when it reads)."""
     root = Path(run_dir) / "checkpoints"
-    folders = _checkpoints(root)[::-1]
+    folders = step_folders(root)[::-1]
     pointer = root / "latest.json"
     if pointer.is_file():
         try:
@@ -210,53 +187,3 @@ def load_checkpoint(folder: Path) -> Checkpoint:
                                f"'extra.averaged_steps' = {averaged_steps!r}")
     return Checkpoint(step=step, scene=load_safetensors(folder / "scene.safetensors"),
                       optimizers=optimizers, strategy=strategy, extra=meta.get("extra", {}), average=average)
-
-
-def save_accelerate_checkpoint(
-    accelerator: Accelerator, root: str | os.PathLike, step: int, extra: dict | None = None, keep: int = 2
-) -> Path | None:
-    """Save models, optimizers, schedulers, RNG states and registered objects as ``root/step_<step>``.
-
-    Every process calls ``accelerator.save_state`` into one temporary folder (each writes its own RNG state,
-    so a resumed multi-process run draws what it would have drawn), which the main process renames into place
-    once complete; then only the ``keep`` newest checkpoints are kept. ``extra`` (JSON) is stored as
-    ``extra.json``. Returns the folder on the main process, ``None`` elsewhere.
-    """
-    root = Path(root)
-    final = root / step_folder_name(step)
-    tmp = root / f".{final.name}.tmp"
-    if accelerator.is_main_process:
-        root.mkdir(parents=True, exist_ok=True)
-        if tmp.exists():
-            shutil.rmtree(tmp)
-    accelerator.wait_for_everyone()
-    try:
-        accelerator.save_state(str(tmp), safe_serialization=True)
-        accelerator.wait_for_everyone()
-        if not accelerator.is_main_process:
-            return None
-        atomic_write_json(tmp / "extra.json", {"step": step, **(extra or {})})
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-    finally:
-        if accelerator.is_main_process and tmp.exists():
-            shutil.rmtree(tmp)
-    for old in _checkpoints(root, "extra.json")[:-keep] if keep > 0 else []:
-        shutil.rmtree(old)
-    return final
-
-
-def latest_accelerate_checkpoint(root: str | os.PathLike) -> Path | None:
-    """Newest complete ``step_<N>`` folder under ``root`` (temporary folders are ignored)."""
-    found = _checkpoints(Path(root), "extra.json")
-    return found[-1] if found else None
-
-
-def load_accelerate_checkpoint(accelerator: Accelerator, folder: str | os.PathLike) -> dict:
-    """Restore everything ``save_accelerate_checkpoint`` saved; returns the ``extra.json`` content (with ``step``)."""
-    folder = Path(folder)
-    if not (folder / "extra.json").is_file():
-        raise FileNotFoundError(f"{folder} is not a complete checkpoint (no extra.json)")
-    accelerator.load_state(str(folder))
-    return read_json(folder / "extra.json")

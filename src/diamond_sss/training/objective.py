@@ -70,11 +70,14 @@ def image_objective(render: SceneRender, target: TargetBatch, cfg: TrainConfig,
         terms["mask"] = cfg.losses.lambda_mask * regularizers.mask_bce_loss(gb.alpha, mask)
     if cfg.losses.lambda_mask_entropy > 0:
         terms["mask_entropy"] = cfg.losses.lambda_mask_entropy * regularizers.mask_entropy_loss(gb.alpha)
+    edges = None  # the image's edge weights, taken once for every smoothed attribute
     for name, key in SMOOTHED_ATTRIBUTES.items():
         weight = getattr(cfg.losses, key)
         if weight > 0:
-            terms[f"smooth_{name}"] = weight * regularizers.bilateral_smoothness_loss(
-                getattr(gb, name), target.rgb, mask)
+            attribute = getattr(gb, name)
+            edges = edges or regularizers.edge_weights(target.rgb, mask, like=attribute)
+            terms[f"smooth_{name}"] = weight * regularizers.bilateral_smoothness_loss(attribute, target.rgb, mask,
+                                                                                      edges)
     if cfg.losses.lambda_enh > 0:
         terms["enhance"] = cfg.losses.lambda_enh * regularizers.enhancement_loss(gb.base_color, target.rgb, mask)
     if cfg.losses.lambda_base_color > 0:

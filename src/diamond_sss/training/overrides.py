@@ -18,6 +18,7 @@ from typing import Any
 from diamond_sss.errors import DataError
 from diamond_sss.losses.photometric import PIXEL_ERRORS
 from diamond_sss.training.config import (
+    AUTO_PRESET,
     FIELDS,
     GROUPS,
     PRESETS,
@@ -126,6 +127,10 @@ def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = N
 
     ``sets`` are ``"key=value"`` strings as given to ``--set``.
     """
+    if preset == AUTO_PRESET:
+        raise ValueError(f"preset '{AUTO_PRESET}' is the command line's: it resolves to diamond with "
+                         "short_schedule(iterations, dense) as overrides; name a preset here: "
+                         f"{sorted(PRESETS)}")
     if preset not in PRESETS:
         raise ValueError(f"unknown preset '{preset}'; presets: {sorted(PRESETS)}")
     values = config_file_values(config_file) if config_file is not None else {}
@@ -180,9 +185,11 @@ def validate_config(config: TrainConfig) -> None:
         raise ValueError(f"config key 'runtime.downscale' must be >= 1, got {config.runtime.downscale}")
 
 
-def describe_config(preset: str = "diamond") -> list[tuple[str, str, Any, str]]:
-    """``(dotted key, flat name, value, meaning)`` of every :class:`TrainConfig` field under ``preset``."""
-    config = make_config(preset)
+def describe_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = None
+                    ) -> list[tuple[str, str, Any, str]]:
+    """``(dotted key, flat name, value, meaning)`` of every :class:`TrainConfig` field under ``preset`` and
+    ``overrides``."""
+    config = make_config(preset, overrides=overrides)
     return [(key, f.metadata.get("flat", f.name), config.get(key), f.metadata["help"])
             for key, f in FIELDS.items()]
 

@@ -1,29 +1,16 @@
-"""A finished run folder: its configuration and trained scene (what evaluation, the viewer and export read).
+"""Whether a run folder may be resumed or reused with a configuration: the settings it records against the given
+ones, and its finished summary (its scene is read by :func:`diamond_sss.runs.folder.load_scene`).
 
-Only the configuration and the scene's I/O are imported here, not the training loop.
+Only the configuration is imported here, not the training loop.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import torch
-
-from diamond_sss.scene.io import read_scene
-from diamond_sss.scene.model import RelightableScene
 from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.overrides import load_run_config
 from diamond_sss.utils.io import move_aside, read_json, sha256_json
-
-
-def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[RelightableScene, TrainConfig]:
-    """The trained scene and configuration of a run folder."""
-    cfg = load_run_config(run_dir)
-    path = Path(run_dir) / "model.safetensors"
-    if not path.is_file():
-        raise ValueError(f"{run_dir}: no trained model ({path} is missing; is the run finished?)")
-    return read_scene(path, cfg.shading, device), cfg
-
 
 RESUMABLE_KEYS = frozenset({"iterations", "log_every", "checkpoint_every", "keep_checkpoints", "image_log_every",
                             "device", "cpu_threads"})

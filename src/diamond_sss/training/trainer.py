@@ -1,13 +1,16 @@
 """The SSS-3DGS / DIAMOND-SSS reconstruction loop.
 
 One step: draw ``B`` (view, light) images (a pure function of the step, so resumed runs see the same
-batches), render them with deferred shading, add the objective's terms (photometric, regularisers,
-ray-traced visibility every ``raytrace_every`` steps, multi-view consistency), back-propagate, step Adam,
+batches), render them with deferred shading at the first source's size, add the objective's terms (photometric,
+regularisers, ray-traced visibility every ``raytrace_every`` steps, multi-view consistency), back-propagate, step Adam,
 and let gsplat's ``DefaultStrategy`` densify and prune under ``gaussians.max_count`` (:class:`CappedStrategy`;
 or keep the Gaussian count fixed), resetting the opacities every ``reset_every`` steps while it densifies
 (:func:`opacity_reset_due`). With
 ``schedule.average_last`` the saved model is the mean of the scene tensors over the run's last steps
 (:mod:`diamond_sss.training.averaging`).
+An image smaller than the first source's (a generated image at its diffusion model's resolution) is compared
+with the render area-downsampled to its size (:func:`area_downsample_render`, :meth:`Trainer.image_terms`): the
+batch is rendered once, at full size, so densification and the multi-view terms see one render of every image.
 Every random draw of step ``t`` comes from the streams of :mod:`diamond_sss.utils.rng` seeded with
 ``(seed, t)``: host streams for decisions taken in Python, device streams for tensors on the training device.
 The step never waits for the device: the loss terms stay there (:class:`LossLog`) and are read, and checked
@@ -20,7 +23,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import torch
@@ -42,7 +45,8 @@ from diamond_sss.losses.multiview import (
 )
 from diamond_sss.losses.regularizers import raytrace_visibility_loss
 from diamond_sss.scene.io import read_scene, save_scene, scene_from_tensors, scene_tensors
-from diamond_sss.scene.model import RelightableScene
+from diamond_sss.scene.model import RelightableScene, SceneRender
+from diamond_sss.shading.deferred import GBuffer, ShadingResult
 from diamond_sss.shading.light_depth import CachedLights, LightMapCache
 from diamond_sss.shading.raytrace import raytraced_visibility
 from diamond_sss.shading.sh import visibility_from_sh
@@ -89,6 +93,58 @@ class ImageSource:
 
 
 @dataclass
+class SizeGroup:
+    """The images of a batch that are ``width x height``: their positions ``items [n]`` in the batch and their
+    targets at that size (intrinsics scaled to it)."""
+
+    items: Tensor
+    width: int
+    height: int
+    target: TargetBatch
+
+
+PREMULTIPLIED_SHADING = ("radiance", "pbr", "diffuse", "specular", "residual")
+"""The :class:`ShadingResult` maps that are premultiplied by alpha (its ``points`` are not)."""
+
+
+def _area(images: Tensor, height: int, width: int) -> Tensor:
+    """Area-average resize of channels-last ``[B,H,W,C]`` images (block means for integer factors)."""
+    chw = images.permute(0, 3, 1, 2)
+    return torch.nn.functional.interpolate(chw, size=(height, width), mode="area").permute(0, 2, 3, 1)
+
+
+def area_downsample_render(render: SceneRender, items: Tensor, height: int, width: int,
+                           eps: float = 1e-6) -> SceneRender:
+    """Images ``items`` of ``render`` area-averaged to ``height x width`` (a sensor of that size over the full render).
+
+    With ``A`` the area average: premultiplied maps (shaded images, alpha) ``x' = A(x)``; alpha-normalised maps
+    (G-buffer attributes, depth, surface points) ``a' = A(alpha a) / A(alpha)``, 0 where ``A(alpha) <= eps`` (as
+    :meth:`GBuffer.from_features`); at the render's own size the images are only selected. The rasterizer's output
+    is the full render's.
+    """
+    gbuffer = render.gbuffer
+    if gbuffer.alpha.shape[1:3] == (height, width):
+        return SceneRender(
+            shading=ShadingResult(**{f.name: getattr(render.shading, f.name)[items] for f in fields(ShadingResult)}),
+            gbuffer=GBuffer(**{f.name: getattr(gbuffer, f.name)[items] for f in fields(GBuffer)}),
+            raster=render.raster)
+    alpha = gbuffer.alpha[items]
+    low_alpha = _area(alpha, height, width)
+    covered = low_alpha > eps
+    inverse = torch.where(covered, 1.0 / low_alpha.clamp_min(eps), torch.zeros_like(low_alpha))
+
+    def normalised(values: Tensor) -> Tensor:
+        return _area(values[items] * alpha, height, width) * inverse
+
+    maps = {f.name: normalised(getattr(gbuffer, f.name)) for f in fields(GBuffer) if f.name != "alpha"}
+    shading = {f.name: (_area(getattr(render.shading, f.name)[items], height, width)
+                        if f.name in PREMULTIPLIED_SHADING else normalised(getattr(render.shading, f.name)))
+               for f in fields(ShadingResult)}
+    return SceneRender(shading=ShadingResult(**shading), gbuffer=GBuffer(**maps, alpha=low_alpha),
+                       raster=render.raster)
+
+
+@dataclass
 class TrainResult:
     """What a finished run reports."""
 
@@ -124,7 +180,8 @@ class Trainer:
 
     Args:
         cfg: the resolved configuration.
-        sources: image sources; the first is the real capture and defines the lattice.
+        sources: image sources; the first is the real capture and defines the lattice and the render size; the
+            others' images may be smaller (each is compared at its own size, see :meth:`image_terms`).
         run_dir: output folder (checkpoints, TensorBoard, model, config); ``None``: write nothing.
         show_progress: show a tqdm bar.
     """
@@ -160,7 +217,8 @@ class Trainer:
         self.mv_cfg = MultiViewConfig(
             pairs_per_step=mv.pairs_per_step, pixels_per_pair=mv.pixels_per_pair, target_mode=mv.target_mode,
             nearest_k=mv.nearest_k, sil_threshold=mv.sil_threshold, occlusion_tol=mv.occlusion_tol,
-            charbonnier_eps=mv.charbonnier_eps if mv.charbonnier_eps > 0 else None,
+            charbonnier_eps=mv.charbonnier_eps if mv.charbonnier_eps > 0 else None, sil_tolerance=mv.sil_tolerance,
+            depth_tolerance=mv.depth_tolerance,
         )
         self.strategy = (CappedStrategy(**cfg.densify.strategy_kwargs(), max_count=cfg.gaussians.max_count,
                                         verbose=False) if cfg.densify.enabled else None)
@@ -169,12 +227,14 @@ class Trainer:
 
     # ------------------------------------------------------------------ set-up
     def _view_silhouettes(self) -> dict[int, Tensor]:
-        """Mask of every (unified) view that has an image in any source (light-independent); real first."""
+        """Mask of every (unified) view that has an image in any source (light-independent), at the render size
+        (a smaller image's area-resized up to it); real first."""
         masks: dict[int, Tensor] = {}
         for source, view_map in zip(self.sources, self.union.view_maps):
             for index, obs in enumerate(source.dataset.observations):
                 if view_map[obs.view] not in masks:
-                    masks[view_map[obs.view]] = source.dataset.load(index).mask[..., 0].to(self.device)
+                    mask = resize_area(source.dataset.load(index).mask, self.height, self.width)
+                    masks[view_map[obs.view]] = mask[..., 0].to(self.device)
         return masks
 
     def build_scene(self) -> RelightableScene:
@@ -264,14 +324,17 @@ class Trainer:
     def draw_batch(self, step: int) -> tuple[list[tuple[int, int]], TargetBatch, Tensor, Tensor]:
         """The step's images: (source, observation) pairs, targets, light positions and intensities.
 
-        Also keeps the batch's views and its masks on the host (``_batch_views``, ``_batch_masks``) for the
+        ``target`` holds every image at the render size (a smaller one area-resized up to it) and the cameras
+        of the render; the image objective compares each image at its own size, by the groups of
+        ``_batch_groups`` (:class:`SizeGroup`, one per image size, in order of first appearance). Also keeps the
+        batch's views and its masks at the render size on the host (``_batch_views``, ``_batch_masks``) for the
         multi-view pixel sampling, and its lights (``_batch_lights``, indices in the union) for the light map cache.
         """
         cfg = self.cfg
         generator = rng.stream_generator(cfg.schedule.seed, step, 0)
         picks = [self.index[i] for i in seeded_epoch_indices(step, cfg.schedule.batch_size, len(self.index),
                                                              cfg.schedule.seed)]
-        rgbs, masks, weights, views, lights = [], [], [], [], []
+        rgbs, masks, weights, views, lights, sizes = [], [], [], [], [], []
         for source_index, obs_index in picks:
             source = self.sources[source_index]
             sample = source.dataset.load(obs_index)
@@ -280,8 +343,9 @@ class Trainer:
             weights.append(source.weight_of(obs_index))
             views.append(self.union.view_maps[source_index][sample.view])
             lights.append(self.union.light_maps[source_index][sample.light])
-        rgb = to_device(torch.stack(rgbs), self.device)
-        host_masks = torch.stack(masks)
+            sizes.append(self.union.view_sizes[source_index][sample.view])
+        rgb = to_device(torch.stack([resize_area(x, self.height, self.width) for x in rgbs]), self.device)
+        host_masks = torch.stack([resize_area(m, self.height, self.width) for m in masks])
         mask = to_device(host_masks, self.device)
         background = (rng.rand(len(picks), 1, 1, 3, generator=generator, device=self.device)
                       if cfg.shading.random_background else None)
@@ -292,7 +356,46 @@ class Trainer:
         self._batch_views = views
         self._batch_lights = lights
         self._batch_masks = host_masks
+        self._batch_groups = self._size_groups(target, rgbs, masks, sizes)
         return picks, target, self.light_positions[lights_t], self.light_intensities[lights_t]
+
+    def _size_groups(self, target: TargetBatch, rgbs: list[Tensor], masks: list[Tensor],
+                     sizes: list[tuple[int, int]]) -> list[SizeGroup]:
+        """The batch's images grouped by size (``target`` itself for a batch of render-size images alone)."""
+        if all(size == (self.width, self.height) for size in sizes):
+            return [SizeGroup(torch.arange(len(sizes), device=self.device), self.width, self.height, target)]
+        groups = []
+        for width, height in dict.fromkeys(sizes):
+            members = [b for b, size in enumerate(sizes) if size == (width, height)]
+            items = to_device(torch.tensor(members), self.device)
+            groups.append(SizeGroup(items, width, height, TargetBatch(
+                rgb=to_device(torch.stack([rgbs[b] for b in members]), self.device),
+                mask=to_device(torch.stack([masks[b] for b in members]), self.device),
+                weights=target.weights[items], viewmats=target.viewmats[items],
+                Ks=scale_intrinsics(target.Ks[items], width / self.width, height / self.height),
+                background=None if target.background is None else target.background[items])))
+        return groups
+
+    def image_terms(self, render: SceneRender, target: TargetBatch) -> dict[str, Tensor]:
+        """:func:`image_objective` of the batch drawn last, each image compared at its own size.
+
+        A batch of render-size images alone: ``image_objective(render, target)``. Else, over the groups ``g`` of
+        ``n_g`` images of one size (``_batch_groups``), each term is ``T = sum_g (n_g / B) T_g`` with ``T_g`` the term
+        of the group's targets and the render area-downsampled to their size (:func:`area_downsample_render`):
+        the per-image-weighted photometric and LPIPS terms are then exactly ``(1/B) sum_b w_b E_b``; the pixel means
+        of the other terms weigh each image once whatever its size.
+        """
+        groups = self._batch_groups
+        if len(groups) == 1 and groups[0].target is target:
+            return image_objective(render, target, self.cfg, self.lpips)
+        batch = target.rgb.shape[0]
+        terms: dict[str, Tensor] = {}
+        for group in groups:
+            part = area_downsample_render(render, group.items, group.height, group.width)
+            share = group.items.numel() / batch
+            for name, value in image_objective(part, group.target, self.cfg, self.lpips).items():
+                terms[name] = terms[name] + share * value if name in terms else share * value
+        return terms
 
     def raytrace_term(self, scene: RelightableScene, light_positions: Tensor, step: int) -> Tensor:
         """Eq. A.7 on a random subset of Gaussians: towards the batch's lights and random directions."""
@@ -310,8 +413,17 @@ class Trainer:
 
     def multiview_terms(self, scene: RelightableScene, render, target: TargetBatch,
                         step: int) -> dict[str, Tensor]:
-        """Silhouette and depth consistency between batch views (sources) and nearby lattice views."""
+        """Silhouette and depth consistency between batch views (sources) and nearby lattice views.
+
+        Nothing (an empty dict) before ``multiview.start_fraction * schedule.iterations`` steps. A target view with
+        no image has no silhouette: it is drawn for the depth term only (its own rendered alpha, detached, filters
+        that term), and gives no silhouette correspondences.
+        """
         cfg = self.cfg
+        if not 0.0 <= cfg.multiview.start_fraction < 1.0:
+            raise ValueError(f"multiview.start_fraction must lie in [0, 1), got {cfg.multiview.start_fraction}")
+        if step < cfg.multiview.start_fraction * cfg.schedule.iterations:
+            return {}
         generator = rng.stream_generator(cfg.schedule.seed, step, 2)
         candidates = torch.arange(self.union.num_views) if cfg.multiview.include_unobserved_views else torch.tensor(
             sorted(self.view_silhouettes))
@@ -345,6 +457,7 @@ class Trainer:
             render.gbuffer.depth[src, ..., 0], render.gbuffer.alpha[src, ..., 0], uv, target.viewmats[src],
             target.Ks[src], tgt_depth, tgt_alpha, silhouettes, self.viewmats[tgt], tgt_K,
             self.bounds.near, self.bounds.far, self.mv_cfg, src_uv_valid=valid,
+            tgt_silhouette_valid=to_device(torch.tensor([t in self.view_silhouettes for t in targets]), self.device),
         )
         out = {}
         if cfg.losses.lambda_sil > 0:
@@ -381,7 +494,7 @@ class Trainer:
         if self.strategy is not None:
             self.strategy.step_pre_backward(scene.gaussians.params, gaussian_optimizers(optimizers),
                                             strategy_state, step, info)
-        terms = image_objective(render, target, cfg, self.lpips)
+        terms = self.image_terms(render, target)
         if cfg.losses.lambda_visibility > 0 and step % cfg.raytrace.every == 0:
             terms["raytrace"] = self.raytrace_term(scene, light_pos, step)
         if cfg.losses.lambda_sil > 0 or cfg.losses.lambda_depth > 0:

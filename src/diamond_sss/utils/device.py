@@ -9,7 +9,10 @@ def resolve_device(name: str) -> torch.device:
     """``auto`` -> CUDA when available, else CPU."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
+    try:
+        device = torch.device(name)
+    except RuntimeError as exc:
+        raise ValueError(f"device '{name}': expected auto | cpu | cuda[:i]") from exc
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError("config 'device' asks for CUDA but torch.cuda.is_available() is False")
     return device

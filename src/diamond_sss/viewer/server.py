@@ -154,7 +154,7 @@ def serve(
     fps: float = 30.0,
 ) -> None:
     """Serve ``run`` at ``http://host:port`` until interrupted (Ctrl-C)."""
-    from diamond_sss.training.run_folder import load_scene
+    from diamond_sss.runs.folder import load_scene
     from diamond_sss.utils.device import resolve_device
 
     scene, _ = load_scene(Path(run), resolve_device(device))

@@ -9,7 +9,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Callable, Collection, Iterable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, ParamSpec, TypeVar
 
@@ -109,15 +109,18 @@ class Deadline:
 _MISSING = object()
 
 
-def check_resumed_settings(path: str | os.PathLike, settings: dict, may_change: Collection[str]) -> None:
+def check_resumed_settings(path: str | os.PathLike, settings: dict, may_change: Collection[str],
+                           implied: Mapping[str, Any] | None = None) -> None:
     """Refuse to resume a fine-tune whose settings, as recorded in ``path`` (JSON) when it started, differ from
     ``settings`` in any key but the top-level ``may_change`` ones (those that a resumed run may change without
     making it another run: its length, how often it logs and checkpoints): a ``ValueError`` naming each differing
-    dotted key, ``recorded -> given``."""
+    dotted key, ``recorded -> given``. ``implied``: top-level keys added since older records were written, with the
+    value such a record stands for (what the code that wrote it did)."""
     path = Path(path)
     recorded = read_json(path)
     if not isinstance(recorded, dict):
         raise DamagedFileError(f"{path}: expected a JSON object of fine-tuning settings, got {type(recorded).__name__}")
+    recorded = {**(implied or {}), **recorded}
     given = json.loads(json.dumps(settings))  # as the record holds them (tuples read back as lists)
     old, new = _dotted(recorded), _dotted(given)
     changed = [f"{key}: {_shown(old, key)} -> {_shown(new, key)}" for key in sorted(old.keys() | new.keys())

@@ -79,7 +79,7 @@ class RenderedGeometry(GeometrySource):
         self._scene = None
 
     def maps(self, dataset: OLATDataset, view: int, image: Tensor, mask: Tensor) -> GeometryMaps:
-        from diamond_sss.training.run_folder import load_scene
+        from diamond_sss.runs.folder import load_scene
 
         if self._scene is None:
             self._scene = load_scene(self.run, self.device)[0].eval()

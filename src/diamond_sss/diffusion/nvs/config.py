@@ -154,8 +154,10 @@ class FinetuneConfig:
         gradient_checkpointing: recompute activations of every ResNet/transformer block in the backward pass.
         seed: seed of the model initialisation and of the sampled training stream.
         checkpoint_every: steps between atomic checkpoints.
-        keep_checkpoints: newest checkpoints kept.
+        keep_checkpoints: newest checkpoints kept (0: every one).
         log_every: steps between log lines.
+        max_grad_norm: clip the gradients to this global L2 norm before each optimiser step (None: not clipped, as
+            the shipped prior was trained).
         time_limit_s: stop early, with a checkpoint and the EMA weights written, once this much wall time (s)
             has passed since the fine-tune started, loading included (a time-boxed run: the steps that fit).
         mixed_precision: accelerate's ``"no"``, ``"fp16"`` (GPU) or ``"bf16"``: the forward pass in autocast.
@@ -181,6 +183,7 @@ class FinetuneConfig:
     checkpoint_every: int = 200
     keep_checkpoints: int = 2
     log_every: int = 25
+    max_grad_norm: float | None = None
     time_limit_s: float | None = None
     mixed_precision: str = "no"
     init_from: str | None = None

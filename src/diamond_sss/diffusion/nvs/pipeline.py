@@ -22,7 +22,12 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diamond_sss.data import OLATDataset
-from diamond_sss.data.conventions import intrinsics_from_fov, opengl_c2w_to_opencv_w2c, scale_intrinsics
+from diamond_sss.data.conventions import (
+    intrinsics_from_fov,
+    mean_up_vector,
+    opengl_c2w_to_opencv_w2c,
+    scale_intrinsics,
+)
 from diamond_sss.data.images import to_srgb8, write_png
 from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.common.hashing import files_hash
@@ -31,6 +36,7 @@ from diamond_sss.diffusion.common.paths import default_cache_dir, shipped_model_
 from diamond_sss.diffusion.common.sampling import PipelineOutput, ddim_sample
 from diamond_sss.diffusion.common.schedulers import make_ddim_scheduler
 from diamond_sss.diffusion.geometry.base import GeometryError, GeometrySource
+from diamond_sss.diffusion.nvs.canonical import canonical_frame
 from diamond_sss.diffusion.nvs.data import load_rgba_views
 from diamond_sss.diffusion.nvs.model import (
     NVSBatch,
@@ -273,15 +279,18 @@ def generate_novel_views(
     device: str = "cpu",
     geometry: GeometrySource | None = None,
     downscale: float = 1.0,
+    canonical: bool = False,
 ) -> Path:
     """Generate the ``targets`` (lattice view indices or cameras, see :func:`parse_targets`) of ``data`` under
     ``light`` from reference ``view``; returns the manifest (:mod:`~diamond_sss.diffusion.common.manifest`).
 
     A model with the warp hint needs ``geometry`` giving the reference's metric depth (stored maps or a
-    reconstruction run folder). The images are made at the size of ``data``'s images divided by ``downscale``
-    (``OLATDataset``'s), cameras given as :class:`TargetCameras` at their own ``size``. Deterministic for a seed,
-    the same initial noise on every device (drawn on the CPU); a second call with the same model and inputs is
-    served from the cache.
+    reconstruction run folder). The images are written at the model's resolution (``image_size``), or at the
+    targets' size when that is smaller (bilinear), never upsampled: the targets' size is that of ``data``'s images
+    divided by ``downscale`` (``OLATDataset``'s), cameras given as :class:`TargetCameras` at their own ``size``.
+    Deterministic for a seed, the same initial noise on every device (drawn on the CPU); a second call with the
+    same model and inputs is served from the cache. ``canonical``: the cameras (and depth) are given to the prior in its own rig's frame
+    (:mod:`~diamond_sss.diffusion.nvs.canonical`; from ``data``'s cameras), not in the capture's.
     """
     dataset = OLATDataset(data, split, downscale=downscale)
     if not 0 <= view < dataset.num_views:
@@ -306,6 +315,9 @@ def generate_novel_views(
             "pass a geometry source ('maps' or a reconstruction run folder)"
         )
     observation = dataset.observations[dataset.observation_index(view, light)]
+    frame = canonical_frame(dataset.viewmats, dataset.bounds.center, mean_up_vector(dataset.viewmats)) \
+        if canonical else None
+    output_size = min(cameras.size, config.image_size)
     key = OutputCache.key(
         {
             "model": files_hash(model_dir),
@@ -316,9 +328,11 @@ def generate_novel_views(
             "targets_w2c": cameras.w2c.tolist(),
             "targets_K": cameras.K.tolist(),
             "size": cameras.size,
+            "output_size": output_size,
             "names": cameras.names,
             "steps": steps,
             "guidance_scale": guidance_scale,
+            "canonical_frame": None if frame is None else [frame.rotation.tolist(), frame.center.tolist(), frame.scale],
             "seed": seed,
             "geometry": geometry.view_key(dataset, view) if config.warp_hint else None,
         }
@@ -331,16 +345,20 @@ def generate_novel_views(
         reference, ref_K = load_rgba_views(dataset, [view], light, size)
         depth = reference_depth(dataset, view, light, geometry, size) if model.config.warp_hint else None
         K = scale_intrinsics(cameras.K, size / cameras.size)
+        reference_w2c, target_w2c = dataset.viewmats[view][None], cameras.w2c[None]
+        if frame is not None:  # the prior's own rig (diffusion/nvs/canonical.py): metric depth scales with it
+            reference_w2c, target_w2c = frame.w2c(reference_w2c), frame.w2c(target_w2c)
+            depth = None if depth is None else depth * frame.scale
         batch = NVSBatch(
             reference=reference.to(device),
-            reference_w2c=dataset.viewmats[view][None].float().to(device),
-            target_w2c=cameras.w2c[None].float().to(device),
+            reference_w2c=reference_w2c.float().to(device),
+            target_w2c=target_w2c.float().to(device),
             target_K=K[None].float().to(device),
             reference_K=ref_K.float().to(device),
             reference_depth=None if depth is None else depth.to(device),
         )
         generator = torch.Generator().manual_seed(seed)  # on the CPU: the same noise on every device
-        output = NovelViewPipeline(model)(batch, steps, guidance_scale, generator, size=cameras.size)
+        output = NovelViewPipeline(model)(batch, steps, guidance_scale, generator, size=output_size)
         for name, rgb, alpha in zip(cameras.names, output.rgb, output.alpha):
             write_png(folder / f"{name}.png", to_srgb8(rgb, alpha))
             write_png(folder / f"{name}_mask.png", (alpha[..., 0].numpy() * 255 + 0.5).astype("uint8"))

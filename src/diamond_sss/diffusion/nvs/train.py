@@ -7,8 +7,7 @@ linear warm-up steps, gradient checkpointing. Sampling of the training stream is
 
 from __future__ import annotations
 
-import json
-import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -18,11 +17,17 @@ from diffusers import DDPMScheduler
 from diffusers.optimization import get_constant_schedule_with_warmup
 from torch import Tensor
 
-from diamond_sss.diffusion.common.ema import EMA, load_checkpoint_ema, save_ema_with_checkpoints
+from diamond_sss.diffusion.common.ema import EMA, save_ema_with_checkpoints
+from diamond_sss.diffusion.common.finetune import (
+    check_loop_settings,
+    open_run,
+    optimizer_step,
+    resume_from,
+    run_steps,
+)
 from diamond_sss.diffusion.common.hashing import state_dict_hash
 from diamond_sss.diffusion.common.runtime import (
     Deadline,
-    check_resumed_settings,
     deterministic_kernels,
     fused_adamw,
     make_accelerator,
@@ -32,20 +37,13 @@ from diamond_sss.diffusion.nvs.config import FinetuneConfig
 from diamond_sss.diffusion.nvs.data import Sequence, fixed_light_sequences, sample_batch
 from diamond_sss.diffusion.nvs.depth_noise import perturb_depth
 from diamond_sss.diffusion.nvs.model import NVSBatch, NVSModel
-from diamond_sss.training.checkpoint import (
-    latest_accelerate_checkpoint,
-    load_accelerate_checkpoint,
-    save_accelerate_checkpoint,
-)
 from diamond_sss.utils.device import to_device
-from diamond_sss.utils.io import atomic_write_json
 
-CHECKPOINTS = "checkpoints"
-SETTINGS = "finetune_config.json"
-"""The run's settings: the ``FinetuneConfig`` and ``data_hash``, the content hash of its training sequences."""
 RESUMABLE = ("steps", "checkpoint_every", "keep_checkpoints", "log_every", "time_limit_s", "gradient_checkpointing")
 """``FinetuneConfig`` fields a resumed run may change: its length (the learning rate is constant after the warm-up,
 so more steps continue the same run), logging, checkpointing, and recomputing activations (the same gradients)."""
+IMPLIED = {"max_grad_norm": None}
+"""Settings added since older runs were recorded, as those runs trained: no gradient clipping."""
 
 
 @dataclass
@@ -100,19 +98,17 @@ def step_batch(state: TrainingState, config: FinetuneConfig, step: int) -> NVSBa
 
 
 def training_step(state: TrainingState, config: FinetuneConfig, batch: NVSBatch, step: int) -> Tensor:
-    """Loss of ``batch`` (autocast in ``config.mixed_precision``), backward pass, optimiser and EMA updates.
-    Returns the loss (on the device: reading it waits for the GPU)."""
+    """Loss of ``batch`` (autocast in ``config.mixed_precision``), backward pass, gradient clipping, optimiser and EMA
+    updates (:func:`~diamond_sss.diffusion.common.finetune.optimizer_step`). Returns the loss (on the device: reading
+    it waits for the GPU)."""
     with state.accelerator.autocast():
         loss = state.raw.training_loss(
             batch,
             generator=_device_generator(state.accelerator.device, config.seed, step),
             scheduler=state.noise_schedule,
         )
-    state.accelerator.backward(loss)
-    state.optimizer.step()
-    state.lr_schedule.step()
-    state.optimizer.zero_grad(set_to_none=True)
-    state.ema.update(state.raw)
+    optimizer_step(state.accelerator, state.optimizer, state.lr_schedule, state.ema, state.raw, loss,
+                   config.max_grad_norm)
     return loss
 
 
@@ -122,59 +118,33 @@ def finetune(
     out: str | Path,
     config: FinetuneConfig | None = None,
     resume: bool = True,
-    log=print,
+    log: Callable[[str], None] = print,
 ) -> Path:
     """Fine-tune on the fixed-illumination sequences of ``data``; write ``out/model`` (EMA weights).
 
-    Returns the model folder. ``out/train_log.jsonl`` records loss, learning rate and seconds per step,
-    ``out/finetune_config.json`` the settings (:data:`SETTINGS`). With ``config.time_limit_s`` the run stops at the
-    first step past that wall time (counted from the call, loading included), checkpointed; running it again with
-    the same ``out`` resumes it, with the same settings and data but for the :data:`RESUMABLE` fields (others are
-    refused, naming them). ``config.init_from`` starts a new run from a saved model's weights (the EMA too); a
-    resumed run takes its checkpoint's.
+    Returns the model folder. The run folder is the fine-tunes' common one (``diffusion/common/finetune.py``):
+    ``finetune_config.json`` the settings and ``data_hash``, the content hash of the training sequences;
+    ``train_log.jsonl`` loss, learning rate and seconds per logged step; ``checkpoints/step_<N>``. With
+    ``config.time_limit_s`` the run stops at the first step past that wall time (counted from the call, loading
+    included), checkpointed; running it again with the same ``out`` resumes it, with the same settings and data but
+    for the :data:`RESUMABLE` fields (others are refused, naming them). ``config.init_from`` starts a new run from a
+    saved model's weights (the EMA too); a resumed run takes its checkpoint's.
     """
     config = config or FinetuneConfig()
+    check_loop_settings(config)
     deadline = Deadline(config.time_limit_s)
     out = Path(out)
     state = build_training(data, config)
     settings = {**asdict(config), "data_hash": sequences_hash(state.sequences)}
-    latest = latest_accelerate_checkpoint(out / CHECKPOINTS) if resume else None
-    if latest is not None:
-        check_resumed_settings(out / SETTINGS, settings, RESUMABLE)
-    out.mkdir(parents=True, exist_ok=True)  # after what can be refused: a refused run leaves no folder behind
-    atomic_write_json(out / SETTINGS, settings)
-
-    step = 0
-    if latest is not None:
-        load_checkpoint_ema(state.ema, latest)
-        step = load_accelerate_checkpoint(state.accelerator, latest)["step"]
-        log(f"resumed from {latest} at step {step}")
-
-    log_path = out / "train_log.jsonl"
+    latest = open_run(out, settings, RESUMABLE, IMPLIED, resume, log)
+    start = resume_from(state.accelerator, state.ema, latest, log)
     state.model.train()
-    while step < config.steps:
-        start = time.perf_counter()
-        loss = training_step(state, config, step_batch(state, config, step), step)
-        step += 1
-        out_of_time = deadline.passed()
-        if step % config.log_every == 0 or step == config.steps or out_of_time:
-            record = {
-                "step": step,
-                "loss": loss.item(),
-                "lr": state.lr_schedule.get_last_lr()[0],
-                "seconds": time.perf_counter() - start,
-            }
-            with open(log_path, "a") as f:
-                f.write(json.dumps(record) + "\n")
-            log(f"step {step}/{config.steps} loss {record['loss']:.4f}")
-        if step % config.checkpoint_every == 0 or step == config.steps or out_of_time:
-            save_accelerate_checkpoint(state.accelerator, out / CHECKPOINTS, step, keep=config.keep_checkpoints)
-        if out_of_time:
-            log(f"time limit of {config.time_limit_s:g} s reached at step {step}")
-            break
 
-    with state.ema.averaged(state.raw):
-        return state.raw.save(out / "model")
+    def step(index: int) -> tuple[Tensor, dict[str, float]]:
+        return training_step(state, config, step_batch(state, config, index), index), {}
+
+    return run_steps(out, config, start, deadline, state.accelerator, state.raw, state.ema, step,
+                     lambda: state.lr_schedule.get_last_lr()[0], state.raw.save, log)
 
 
 def sequences_hash(sequences: list[Sequence]) -> str:

@@ -178,7 +178,9 @@ class RelightTrainConfig:
         ema_decay: EMA decay of the shipped weights.
         cycle_every: compute the cycle-consistency term every this many steps (it doubles a step's cost).
         checkpoint_every: steps between atomic checkpoints.
+        keep_checkpoints: newest checkpoints kept (0: every one).
         log_every: steps between log lines.
+        max_grad_norm: clip the gradients to this global L2 norm before each optimiser step (None: not clipped).
         seed: seed of initialisation, batches, timesteps and noise.
         mixed_precision: accelerate's ``"no"``, ``"fp16"`` or ``"bf16"`` (GPU).
         time_limit_s: stop early (checkpoint and weights written) once this much wall time (s) has passed since
@@ -195,7 +197,9 @@ class RelightTrainConfig:
     ema_decay: float = 0.995
     cycle_every: int = 4
     checkpoint_every: int = 100
+    keep_checkpoints: int = 2
     log_every: int = 10
+    max_grad_norm: float | None = 1.0
     seed: int = 0
     mixed_precision: str = "no"
     time_limit_s: float | None = None

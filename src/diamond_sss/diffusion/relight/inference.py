@@ -5,6 +5,8 @@ the geometry source's identity (with the content of the maps it reads), the sour
 seed. The initial noise of sample ``k`` of target light ``l`` is drawn from ``seed``, ``l`` and ``k`` alone, so
 a result does not depend on how the target lights were batched. With ``samples > 1`` the image is the mean of
 that many samples (a test-time ensemble, as in Marigold: it averages out the noise the sampler leaves).
+The model sees the source area-downsampled to its resolution ``R``; a relit image is written at ``R`` (or at the
+source's side where that is smaller: :func:`output_size`), its mask the source's area-resized to that size.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import torch
 from torch import Tensor
 
 from diamond_sss.data.dataset import OLATDataset
-from diamond_sss.data.images import load_rgba, to_srgb8, write_png
+from diamond_sss.data.images import load_rgba, resize_area, to_srgb8, write_png
 from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.common.manifest import GeneratedImage, image_paths, write_image_manifest
 from diamond_sss.diffusion.common.model_io import CONFIG_NAME, WEIGHTS_NAME
@@ -61,6 +63,12 @@ def load_model(path: str | os.PathLike | None = None, device: str = "cpu") -> Re
             f"relighting model not found: {folder} needs {CONFIG_NAME} and {WEIGHTS_NAME}{hint}"
         )
     return RelightDiffusion.load(folder).to(device)
+
+
+def output_size(height: int, width: int, resolution: int) -> tuple[int, int]:
+    """``(min(height, R), min(width, R))``: the size of a relit image of an ``height x width`` source by a model of
+    resolution ``R`` (never upsampled past what the model made)."""
+    return min(height, resolution), min(width, resolution)
 
 
 def relight_view(
@@ -113,6 +121,7 @@ def relight_view(
         "steps": num_steps,
         "samples": samples,
         "seed": seed,
+        "size": output_size(*sample.rgb.shape[:2], model.config.resolution),
     }
     keys = {
         light: cache.key({**source_key, "target_code": codes[light].tolist(), "light": light})
@@ -187,8 +196,10 @@ def _generate(
         ])
         for sample in range(samples)
     ])
+    size = output_size(*rgb.shape[:2], model.config.resolution)
     output = RelightPipeline(model)(cond, target_codes, source_codes, num_steps, noise=noise, hint=hint,
-                                    samples=samples, size=tuple(rgb.shape[:2]))
+                                    samples=samples, size=size)
+    mask = resize_area(mask, *size)
     images = output.rgb * (mask > 1e-3)
     for light, image in zip(lights, images):
         cache.put(

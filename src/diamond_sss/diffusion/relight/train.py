@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Callable
@@ -12,11 +11,17 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from diamond_sss.diffusion.common.ema import EMA, load_checkpoint_ema, save_ema_with_checkpoints
+from diamond_sss.diffusion.common.ema import EMA, save_ema_with_checkpoints
+from diamond_sss.diffusion.common.finetune import (
+    check_loop_settings,
+    open_run,
+    optimizer_step,
+    resume_from,
+    run_steps,
+)
 from diamond_sss.diffusion.common.hashing import state_dict_hash
 from diamond_sss.diffusion.common.runtime import (
     Deadline,
-    check_resumed_settings,
     deterministic_kernels,
     fused_adamw,
     make_accelerator,
@@ -27,21 +32,15 @@ from diamond_sss.diffusion.relight.config import RelightLossWeights, RelightTrai
 from diamond_sss.diffusion.relight.data import RelightViews
 from diamond_sss.diffusion.relight.losses import image_losses
 from diamond_sss.diffusion.relight.model import RelightDiffusion
-from diamond_sss.training.checkpoint import (
-    latest_accelerate_checkpoint,
-    load_accelerate_checkpoint,
-    save_accelerate_checkpoint,
-)
 from diamond_sss.utils.device import to_device
 from diamond_sss.utils.io import atomic_write_json
 
-SETTINGS = "train_config.json"
-"""The run's settings: the ``RelightTrainConfig``, the model's config (``model``) and the content hashes of the
-training views (``data_hash``) and of the LPIPS network (``lpips_hash``, null without one)."""
-RESUMABLE = ("checkpoint_every", "log_every", "time_limit_s")
+RESUMABLE = ("checkpoint_every", "keep_checkpoints", "log_every", "time_limit_s")
 """``RelightTrainConfig`` fields a resumed run may change: logging, checkpointing and its wall-time limit. Not
 ``steps``: the cosine decay of the learning rate spans them, so more steps would change the rate of steps already
 scheduled."""
+IMPLIED = {"max_grad_norm": 1.0}
+"""Settings added since older runs were recorded, as those runs trained: gradients clipped to norm 1."""
 
 
 def step_generator(seed: int, step: int) -> torch.Generator:
@@ -115,27 +114,25 @@ def finetune(
     config: RelightTrainConfig,
     lpips: nn.Module | None = None,
     resume: bool = True,
-    log: Callable[[dict], None] | None = None,
+    log: Callable[[str], None] = print,
 ) -> Path:
-    """Fine-tune ``model`` on ``views``; writes ``out/checkpoints/step_*``, ``out/log.jsonl``,
-    ``out/selection.json`` and the EMA weights as ``out/model`` (see :meth:`RelightDiffusion.save`).
+    """Fine-tune ``model`` on ``views``; returns ``out/model``, the EMA weights (see :meth:`RelightDiffusion.save`).
 
-    With ``resume`` the newest complete checkpoint under ``out/checkpoints`` is restored (model, optimizer,
-    schedule, EMA) and training continues from its step with the same batches it would have drawn; the settings
-    (``out/train_config.json``, :data:`SETTINGS`) must be the recorded ones but for the :data:`RESUMABLE` fields
-    (others are refused, naming them).
+    The run folder is the fine-tunes' common one (``diffusion/common/finetune.py``): ``finetune_config.json`` the
+    ``RelightTrainConfig``, the model's config (``model``) and the content hashes of the training views
+    (``data_hash``) and of the LPIPS network (``lpips_hash``, null without one); ``train_log.jsonl`` the loss, its
+    terms, learning rate and seconds per logged step; ``checkpoints/step_<N>``; and ``selection.json``, the images
+    used. With ``resume`` the newest complete checkpoint is restored (model, optimizer, schedule, EMA) and training
+    continues from its step with the same batches it would have drawn; the settings must be the recorded ones but
+    for the :data:`RESUMABLE` fields (others are refused, naming them).
     """
+    check_loop_settings(config)
     deadline = Deadline(config.time_limit_s)
     out = Path(out)
-    checkpoint_root = out / "checkpoints"
-    found = latest_accelerate_checkpoint(checkpoint_root) if resume else None
     settings = {**asdict(config), "model": model.config.to_dict(), "data_hash": state_dict_hash(asdict_views(views)),
                 "lpips_hash": None if lpips is None else state_dict_hash(lpips.state_dict())}
-    if found is not None:
-        check_resumed_settings(out / SETTINGS, settings, RESUMABLE)
-    out.mkdir(parents=True, exist_ok=True)
+    found = open_run(out, settings, RESUMABLE, IMPLIED, resume, log)
     atomic_write_json(out / "selection.json", views.selection)
-    atomic_write_json(out / SETTINGS, settings)
     accelerator = make_accelerator(config.mixed_precision)
     trainable = [p for p in model.parameters() if p.requires_grad]
     optimizer = fused_adamw(trainable, config.learning_rate, config.weight_decay)
@@ -148,16 +145,14 @@ def finetune(
     save_ema_with_checkpoints(accelerator, ema)
     if lpips is not None:
         lpips = lpips.to(accelerator.device).requires_grad_(False)
-    start = 0
-    if found is not None:
-        load_checkpoint_ema(ema, found)
-        start = int(load_accelerate_checkpoint(accelerator, found)["step"])
+    start = resume_from(accelerator, ema, found, log)
     device = accelerator.device
     data = {k: v.to(device) for k, v in asdict_views(views).items()}
     on_device = RelightViews(**data, selection=views.selection)
     model.train()
-    for step in range(start, config.steps):
-        generator = step_generator(config.seed, step)
+
+    def step(index: int) -> tuple[Tensor, dict[str, float]]:
+        generator = step_generator(config.seed, index)
         batch = on_device.batch(*[to_device(i, device) for i in views.random_indices(config.batch_size, generator)])
         batch = augment_batch(batch, config.augment, generator)
         with accelerator.autocast():
@@ -166,39 +161,14 @@ def finetune(
                 batch,
                 config.losses,
                 generator,
-                with_cycle=config.cycle_every > 0 and step % config.cycle_every == 0,
+                with_cycle=config.cycle_every > 0 and index % config.cycle_every == 0,
                 lpips=lpips,
             )
-        optimizer.zero_grad(set_to_none=True)
-        accelerator.backward(loss)
-        accelerator.clip_grad_norm_(trainable, 1.0)
-        optimizer.step()
-        schedule.step()
-        ema.update(unwrapped)
-        done = step + 1
-        out_of_time = deadline.passed()
-        if done % config.log_every == 0 or done == config.steps or out_of_time:
-            record = {
-                "step": done,
-                "loss": float(loss.detach()),
-                **terms,
-                "lr": schedule.get_last_lr()[0],
-                "elapsed_s": deadline.elapsed(),
-            }
-            with open(out / "log.jsonl", "a") as handle:
-                handle.write(json.dumps(record) + "\n")
-            if log is not None:
-                log(record)
-        if done % config.checkpoint_every == 0 or done == config.steps or out_of_time:
-            save_accelerate_checkpoint(accelerator, checkpoint_root, done)
-            with ema.averaged(unwrapped):
-                unwrapped.save(out / "model")
-        if out_of_time:
-            break
-    if start >= config.steps:
-        with ema.averaged(unwrapped):
-            unwrapped.save(out / "model")
-    return out / "model"
+        optimizer_step(accelerator, optimizer, schedule, ema, unwrapped, loss, config.max_grad_norm)
+        return loss, terms
+
+    return run_steps(out, config, start, deadline, accelerator, unwrapped, ema, step,
+                     lambda: schedule.get_last_lr()[0], unwrapped.save, log)
 
 
 def asdict_views(views: RelightViews) -> dict[str, Tensor]:

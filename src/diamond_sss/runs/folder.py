@@ -1,0 +1,24 @@
+"""A finished run folder: its configuration (``config.json``) and trained scene (``model.safetensors``).
+
+Only the configuration schema and the scene's I/O are imported here, not the training loop.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from diamond_sss.scene.io import read_scene
+from diamond_sss.scene.model import RelightableScene
+from diamond_sss.training.config import TrainConfig
+from diamond_sss.training.overrides import load_run_config
+
+
+def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[RelightableScene, TrainConfig]:
+    """The trained scene and configuration of a run folder."""
+    cfg = load_run_config(run_dir)
+    path = Path(run_dir) / "model.safetensors"
+    if not path.is_file():
+        raise ValueError(f"{run_dir}: no trained model ({path} is missing; is the run finished?)")
+    return read_scene(path, cfg.shading, device), cfg
