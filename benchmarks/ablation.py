@@ -1,6 +1,7 @@
 """Multi-view loss ablation (issue 4; supplement Tab. 2, Fig. 16) on the embedded demo object.
 
-{sss3dgs, diamond without multi-view losses, + silhouette, + depth, + both} x {all, views=5,lights=6 (30 images),
+{sss3dgs, diamond without multi-view losses, + silhouette, + depth, + both, + both with targets also among the
+views without an image} x {all, views=5,lights=6 (30 images),
 views=3,lights=3 (9 images)}, each trained with the short CPU schedule and scored on novel views under novel lights.
 Runs go to outputs/benchmarks/ablation (resumable); ablation.json, ablation.md and ablation_grid.png are
 copied to benchmarks/results/ablation.

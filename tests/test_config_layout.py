@@ -18,7 +18,8 @@ FLAT_RUN_CONFIG = Path(__file__).parent / "fixtures" / "run_config_flat.json"
 """A run's config.json as written before the groups (one flat object of 72 keys): preset sss3dgs with
 FLAT_RUN_SETS."""
 FLAT_RUN_SETS = ["lambda_dssim=0.31", "densify_from_iter=250", "mv_pairs_per_step=3", "raytrace_gaussians=77",
-                 "sss_lr=0.004", "mixed_precision=false", "percent_dense=0.02", "device=cpu", "num_gaussians=1234"]
+                 "sss_lr=0.004", "mixed_precision=false", "percent_dense=0.02", "device=cpu", "num_gaussians=1234",
+                 "mv_include_unobserved_views=true"]  # the default until issue 58
 
 
 def test_a_flat_config_json_of_an_earlier_run_loads_to_the_same_configuration(tmp_path):

@@ -106,7 +106,7 @@ def test_depth_offset_gives_closed_form_normalised_error(charbonnier_eps):
     # and a source offset delta moves X to depth 2 + delta in the target as well.
     src = camera((0.0, 0.0, 2.0), (0.0, 0.0, 0.0))
     tgt = camera((0.3, 0.0, 2.0), (0.3, 0.0, 0.0))
-    cfg = MultiViewConfig(occlusion_tol=1.0, charbonnier_eps=charbonnier_eps, depth_tolerance=0.0)
+    cfg = MultiViewConfig(occlusion_tol=1.0, charbonnier_eps=charbonnier_eps)
     for delta in (-0.4, -0.1, 0.0, 0.1, 0.3):
         terms = run(src, tgt, 2.0 * ones() + delta, 2.0 * ones(), cfg)
         d = abs(delta) / SPAN
@@ -118,7 +118,7 @@ def test_depth_offset_gives_closed_form_normalised_error(charbonnier_eps):
 def test_depth_loss_grows_monotonically_with_offset_on_tilted_views():
     src = camera((0.3, -0.2, 3.0), (0.0, 0.0, 0.0))
     tgt = camera((1.0, 0.6, 2.8), (0.1, 0.0, 0.0))
-    cfg = MultiViewConfig(occlusion_tol=1.0, depth_tolerance=0.0)
+    cfg = MultiViewConfig(occlusion_tol=1.0)
     base_src, base_tgt = ground_plane_depth(*src), ground_plane_depth(*tgt)
     for sign in (-1.0, 1.0):
         losses = [
@@ -152,7 +152,7 @@ def test_each_filter_removes_exactly_the_constructed_correspondences():
     tgt_depth[12, 12] = 2.0 + 0.5  # in front (free-space violation): kept, residual 0.125
     src_depth.requires_grad_(True)
     tgt_depth.requires_grad_(True)
-    cfg = MultiViewConfig(sil_threshold=0.5, occlusion_tol=0.02, alpha_threshold=0.5, depth_tolerance=0.0)
+    cfg = MultiViewConfig(sil_threshold=0.5, occlusion_tol=0.02, alpha_threshold=0.5, sil_tolerance=0.5)
     terms = run(view, view, src_depth, tgt_depth, cfg, src_alpha=src_alpha, tgt_alpha=tgt_alpha, sil=sil)
     n_valid_source = size * size - 4
     assert terms.n_silhouette.item() == n_valid_source
@@ -160,7 +160,7 @@ def test_each_filter_removes_exactly_the_constructed_correspondences():
     assert terms.n_depth.item() == n_valid_source - 3 - 1 - 1
     assert terms.depth.item() == pytest.approx((0.01 + 0.125) / terms.n_depth.item(), abs=1e-9)
     # Without the occlusion filter the invalid target depths are still dropped, the occluded point is not.
-    no_occlusion = MultiViewConfig(sil_threshold=0.5, occlusion_tol=1.0, alpha_threshold=0.5, depth_tolerance=0.0)
+    no_occlusion = MultiViewConfig(sil_threshold=0.5, occlusion_tol=1.0, alpha_threshold=0.5, sil_tolerance=0.5)
     kept = run(
         view, view, src_depth, tgt_depth, no_occlusion, src_alpha=src_alpha, tgt_alpha=tgt_alpha, sil=sil
     )
@@ -352,7 +352,7 @@ def test_gradcheck_both_terms_wrt_source_and_target_depth():
     grid = pixel_grid(size, size).to(torch.float64)
     sil = torch.sigmoid(0.4 * (grid[..., 0] - 3.0))
     uv = all_pixels(size)[::5]
-    cfg = MultiViewConfig(occlusion_tol=1.0, sil_threshold=0.0, charbonnier_eps=1e-3, depth_tolerance=0.0)
+    cfg = MultiViewConfig(occlusion_tol=1.0, sil_threshold=0.0, charbonnier_eps=1e-3)
 
     def objective(d_src, d_tgt):
         terms = run(src, tgt, d_src, d_tgt, cfg, uv=uv, sil=sil)
@@ -527,7 +527,7 @@ def test_a_correct_tilted_plane_of_splats_costs_nothing_within_the_depth_toleran
     opacities = torch.full((means.shape[0],), 0.99)
     strict = splat_terms(means, scales, opacities, MultiViewConfig(depth_tolerance=0.0))
     assert strict.n_depth > 500 and 0.008 < strict.depth.item() < 0.02
-    tolerant = splat_terms(means, scales, opacities, MultiViewConfig())
+    tolerant = splat_terms(means, scales, opacities, MultiViewConfig(depth_tolerance=0.02, sil_tolerance=0.5))
     assert tolerant.n_depth == strict.n_depth
     assert tolerant.depth.item() == 0.0 and tolerant.silhouette.item() == 0.0
 
@@ -541,7 +541,7 @@ def test_depth_gradient_moves_a_displaced_splat_back_to_the_sphere():
         moved = means.clone()
         moved[front, 2] += delta
         moved.requires_grad_(True)
-        splat_terms(moved, scales, opacities, MultiViewConfig(), near=1.5, far=4.5).depth.backward()
+        splat_terms(moved, scales, opacities, MultiViewConfig(depth_tolerance=0.02), near=1.5, far=4.5).depth.backward()
         gradients[delta] = moved.grad[front, 2].item()
     assert abs(gradients[0.0]) < 1e-4  # the true configuration: nothing to correct
     assert gradients[0.3] > gradients[0.2] > 1e-3  # descent lowers z: back onto the surface, harder when farther
@@ -579,7 +579,7 @@ def test_trainer_terms_start_late_and_unobserved_targets_have_no_silhouette(tmp_
     cfg = make_config("diamond", overrides={
         "iterations": 10, "num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "densify": False,
         "device": "cpu", "mv_pixels_per_pair": 16, "mv_pairs_per_step": 8, "mv_target_mode": "random",
-        "mv_start_fraction": 0.5})
+        "mv_start_fraction": 0.5, "mv_include_unobserved_views": True})
     trainer = Trainer(cfg, [ImageSource(dataset.subset(observed))], None, show_progress=False)
     scene = trainer.build_scene()
     _, target, light_pos, light_rgb = trainer.draw_batch(0)

@@ -189,7 +189,8 @@ def view(run: Path, port: int = 8080, host: str = "127.0.0.1", resolution: int =
 
 
 def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5,lights=6", "views=3,lights=3"],  # noqa: B006
-           variants: list[str] = ["sss3dgs", "diamond-no-mv", "+silhouette", "+depth", "+both"],  # noqa: B006
+           variants: list[str] = ["sss3dgs", "diamond-no-mv", "+silhouette", "+depth", "+both",  # noqa: B006
+                         "+both-all-targets"],
            iterations: int = 400, set_: SetArg = [], seed: int | None = None,  # noqa: B006
            quiet: bool = False) -> None:
     """Ablate the multi-view silhouette and depth losses (supplement Tab. 2) over capture regimes.
@@ -201,7 +202,8 @@ def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5,lights=6
         data: data folder with train and test splits.
         out: output folder.
         regimes: capture regimes to compare.
-        variants: sss3dgs | diamond-no-mv | +silhouette | +depth | +both.
+        variants: sss3dgs | diamond-no-mv | +silhouette | +depth | +both | +both-all-targets (targets also
+            among the views without an image).
         iterations: training steps per run, with the short-run settings (training.config.short_schedule) scaled
             to them and, on the dense regime all, a dense capture's (DENSE_SHORT_RUN), as benchmarks/ablation.py
             trains; --set's keys come after them.

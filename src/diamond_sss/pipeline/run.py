@@ -460,7 +460,8 @@ def nvs_geometry(cfg: PipelineConfig, prelim_dir: Path) -> GeometrySource:
 
 def nvs_stage(ctx: PipelineContext) -> dict:
     """Novel views into ``<out>/nvs``: under each real light, the (spread) missing views generated from the nearest
-    real view, at the size the reconstructions train at (the real images over ``runtime.downscale``)."""
+    real view, at the model's resolution or the training size (the real images over ``runtime.downscale``) when that
+    is smaller: the final reconstruction compares them with its render area-downsampled to their size."""
     from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
 
     cfg, lattice, source = ctx.cfg, ctx.lattice, ctx.lattice_source

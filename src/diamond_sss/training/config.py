@@ -176,7 +176,8 @@ class MultiView:
                                 "mv_sil_threshold")
     occlusion_tol: float = _key(0.02, "relative depth tolerance of the occlusion test", "mv_occlusion_tol")
     charbonnier_eps: float = _key(0.0, "Charbonnier epsilon of the depth loss (0: L1)", "mv_charbonnier_eps")
-    include_unobserved_views: bool = _key(True, "also draw targets among lattice views with no image",
+    include_unobserved_views: bool = _key(False, "also draw targets among lattice views with no image (for the "
+                                                 "depth term only: they have no silhouette)",
                                           "mv_include_unobserved_views")
     target_downscale: int = _key(2, "resolution divisor of the target views", "mv_target_downscale")
     sil_tolerance: float = _key(1.0, "silhouette value at and above which a reprojected point costs nothing "
