@@ -46,7 +46,7 @@ from diamond_sss.evaluation.metrics import image_metrics
 from diamond_sss.pipeline.capture import lattice_header
 from diamond_sss.runs.folder import load_scene
 from diamond_sss.training.config import short_schedule
-from diamond_sss.training.run import train_run
+from diamond_sss.training.run import train_from_preset
 
 RESULTS = Path(__file__).resolve().parent / "results" / "nvs_quality"
 WORK = Path(__file__).resolve().parents[1] / "outputs" / "benchmarks" / "nvs_quality"
@@ -99,7 +99,7 @@ def baseline_renders(data: Path, view: int, light: int, targets: list[int], out:
     dataset = OLATDataset(data, "train")
     capture = single_image_capture(data, view, light, out / "capture")
     overrides = {**short_schedule(iterations), "device": "cpu", "lambda_lpips": 0.0}
-    train_run(capture, out / "run", overrides=overrides, resume=True, show_progress=False)
+    train_from_preset(capture, out / "run", overrides=overrides, resume=True, show_progress=False)
     scene, _ = load_scene(out / "run")
     n = len(targets)
     with torch.no_grad():

@@ -39,7 +39,7 @@ from diamond_sss.experiments.ablation import regime_slug
 from diamond_sss.runs.folder import load_scene
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.overrides import parse_sets
-from diamond_sss.training.run import train_run
+from diamond_sss.training.run import train_from_preset
 
 RESULTS = Path(__file__).resolve().parent / "results" / "quality"
 RUNS = Path("outputs") / "benchmarks" / "quality"
@@ -149,8 +149,8 @@ def main() -> None:
         settings = {**short_schedule(args.iterations, dense=args.regime == "all"), **overrides}
         run = args.out / data.name / regime_slug(args.regime) / f"{name}-{settings_hash(args.preset, settings)}"
         started = time.perf_counter()
-        result = train_run(data, run, regime=args.regime, preset=args.preset, overrides=settings, resume=True,
-                           show_progress=False)
+        result = train_from_preset(data, run, regime=args.regime, preset=args.preset, overrides=settings,
+                                   resume=True, show_progress=False)
         minutes = (time.perf_counter() - started) / 60
         scores = evaluate_run(run, data, split="test", figures=0, show_progress=False)
         fit = evaluate_run(run, data, split="train", figures=0, max_images=TRAIN_IMAGES, show_progress=False)

@@ -157,10 +157,11 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     if method in ("sss3dgs", "+mv", "dense"):
         run = runs / method
         preset = "sss3dgs" if method == "sss3dgs" else "diamond"
-        move_aside_if_trained_otherwise(run, make_config(preset, overrides=overrides))  # settings changed since: again
+        config = make_config(preset, overrides=overrides)
+        move_aside_if_trained_otherwise(run, config)  # settings changed since: again
         if not (run / "model.safetensors").is_file():  # a finished run is not resumed (that retrains its last part)
-            train_run(data, run, regime="all" if method == "dense" else regime, preset=preset, overrides=overrides,
-                      resume=True, show_progress=False)
+            train_run(data, run, config, regime="all" if method == "dense" else regime, resume=True,
+                      show_progress=False)
         metrics = evaluate_run(run, data, figures=0, show_progress=False)
         real = len(json.loads((run / "regime.json").read_text())["observations"])
         return run, {**metrics, "real_images": real, "synthetic_images": 0, "real_share": 1.0}

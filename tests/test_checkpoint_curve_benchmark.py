@@ -10,7 +10,7 @@ from repo_scripts import load_script
 
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.evaluation.run import evaluate_run
-from diamond_sss.training.run import train_run
+from diamond_sss.training.run import train_from_preset
 
 checkpoint_curve = load_script("benchmarks/checkpoint_curve.py", "checkpoint_curve_benchmark")
 
@@ -25,7 +25,7 @@ def run(tmp_path_factory):
     root = tmp_path_factory.mktemp("curve")
     make_capture(root / "capture", views=4, lights=2, size=16)
     make_capture(root / "capture", views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
-    train_run(root / "capture", root / "run", overrides=TINY, show_progress=False)
+    train_from_preset(root / "capture", root / "run", overrides=TINY, show_progress=False)
     return root / "run"
 
 

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import pytest
 
 from diamond_sss.cli.main import main
 from diamond_sss.cli.options import config_from, options_of
 from diamond_sss.pipeline.config import PipelineConfig
-from diamond_sss.training.overrides import short_run_overrides
+from diamond_sss.training.overrides import make_config, short_run_overrides
 
 
 @pytest.fixture
@@ -129,15 +130,19 @@ def test_seed_and_device_flags_left_out_keep_the_config_files_values(tmp_path, m
     from diamond_sss.experiments import ablation
 
     seen = {}
-    monkeypatch.setattr(training_run, "train_run", lambda data, out, **kwargs: seen.update(kwargs) or
+    monkeypatch.setattr(training_run, "train_run", lambda data, out, config, **kwargs: seen.update(config=config) or
                         dataclasses.make_dataclass("R", ["steps", "seconds", "num_gaussians", "final_loss"])(1, 0, 1, 0))
     base = ["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--quiet"]
     main(base)  # the default preset auto: diamond with the short-run settings, no seed or device among them
-    assert seen["overrides"] == short_run_overrides(1000, dense=True) and seen["preset"] == "diamond"
+    assert seen["config"] == make_config("diamond", overrides=short_run_overrides(1000, dense=True))
     main([*base, "--preset", "diamond"])
-    assert seen["overrides"] == {}
+    assert seen["config"] == make_config("diamond")
     main([*base, "--preset", "diamond", "--seed", "5", "--device", "cpu"])
-    assert seen["overrides"] == {"seed": 5, "device": "cpu"}
+    assert seen["config"] == make_config("diamond", overrides={"seed": 5, "device": "cpu"})
+    best = tmp_path / "best.json"
+    best.write_text(json.dumps({"seed": 7, "device": "cpu", "sss_width": 16}))
+    main([*base, "--preset", "diamond", "--config", str(best), "--seed", "5", "--set", "device=auto"])
+    assert seen["config"] == make_config("diamond", overrides={"seed": 5, "device": "auto", "sss_width": 16})
     monkeypatch.setattr(ablation, "run_ablation", lambda data, out, **kwargs: seen.update(kwargs) or [])
     main(["ablate", "--data", str(tmp_path), "--out", str(tmp_path / "ablation"), "--set", "seed=3"])
     assert seen["overrides"]["schedule.seed"] == 3
@@ -153,12 +158,11 @@ def test_ablate_trains_the_benchmarks_short_schedule_and_densifies_within_its_st
     capture's on the regime ``all``, --set's last."""
     from diamond_sss.experiments import ablation
     from diamond_sss.training.config import DENSE_SHORT_RUN
-    from diamond_sss.training.overrides import make_config
 
     configs = {}
 
-    def fake_train_run(data, run, *, regime, preset, overrides, **kwargs):
-        configs[regime, run.name] = make_config(preset, overrides=overrides)
+    def fake_train_run(data, run, config, *, regime, **kwargs):
+        configs[regime, run.name] = config
 
     monkeypatch.setattr(ablation, "train_run", fake_train_run)
     monkeypatch.setattr(ablation, "evaluate_run", lambda *args, **kwargs: {"psnr": 0.0, "ssim": 0.0, "mask_iou": 0.0})

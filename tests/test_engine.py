@@ -197,10 +197,11 @@ def test_a_training_step_on_cuda_queues_without_waiting_for_the_gpu(capture, tmp
 
 @pytest.mark.parametrize("value", [-0.5, float("nan")])
 def test_synthetic_weight_is_checked_in_the_config_not_in_the_step(value):
-    from diamond_sss.training.overrides import make_config
+    from diamond_sss.pipeline.config import PipelineConfig
+    from diamond_sss.pipeline.run import checked_config
 
     with pytest.raises(ValueError, match="synthetic_weight"):
-        make_config("diamond", overrides={"synthetic_weight": value})
+        checked_config(PipelineConfig(synthetic_weight=value))
 
 
 def test_epoch_order_is_a_permutation_drawn_once_per_epoch():

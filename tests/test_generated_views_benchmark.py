@@ -14,7 +14,7 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.data.images import write_png
 from diamond_sss.diffusion.common.manifest import GeneratedImage, write_image_manifest
-from diamond_sss.training.run import train_run
+from diamond_sss.training.run import train_from_preset
 
 generated_views = load_script("benchmarks/generated_views.py", "generated_views_benchmark")
 
@@ -44,7 +44,7 @@ def pipeline_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("generated")
     data = root / "capture"
     make_capture(data, views=6, lights=3, size=16)
-    train_run(data, root / "prelim", overrides=TINY, show_progress=False)
+    train_from_preset(data, root / "prelim", overrides=TINY, show_progress=False)
     run = root / "run"
     dataset = OLATDataset(data, "train")
     nvs = run / "nvs" / "l000_v000"

@@ -192,7 +192,7 @@ def test_tiny_marigold_wiring(view_sample, tiny_marigold, tiny_depth_anything):
 def test_rendered_from_a_reconstruction_run(tmp_path):
     from diamond_sss.data.analytic import make_capture
     from diamond_sss.diffusion.geometry import RenderedGeometry
-    from diamond_sss.training.run import train_run
+    from diamond_sss.training.run import train_from_preset
 
     make_capture(tmp_path / "data", views=4, lights=2, size=16)
     overrides = {
@@ -206,7 +206,8 @@ def test_rendered_from_a_reconstruction_run(tmp_path):
         "image_log_every": 1000,
         "device": "cpu",
     }
-    train_run(tmp_path / "data", tmp_path / "run", preset="sss3dgs", overrides=overrides, show_progress=False)
+    train_from_preset(tmp_path / "data", tmp_path / "run", preset="sss3dgs", overrides=overrides,
+                      show_progress=False)
     source = geometry_source(str(tmp_path / "run"))
     assert isinstance(source, RenderedGeometry)
     dataset = OLATDataset(tmp_path / "data")

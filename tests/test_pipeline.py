@@ -34,7 +34,7 @@ from diamond_sss.pipeline.run import (
     target_real_share,
 )
 from diamond_sss.runs.folder import load_scene
-from diamond_sss.training.run import train_run
+from diamond_sss.training.run import train_from_preset
 from diamond_sss.training.trainer import ImageSource
 from diamond_sss.utils.io import sha256_file, sha256_json
 
@@ -102,7 +102,7 @@ def test_agreement_factors():
 def test_render_errors_against_the_preliminary_reconstruction(setup, tmp_path):
     data = setup[0]
     real = OLATDataset(data)
-    train_run(data, tmp_path / "base", regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
+    train_from_preset(data, tmp_path / "base", regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
     scene = load_scene(tmp_path / "base")[0]
     camera, light = real.cameras[3], real.lights[2]
     with torch.no_grad():
@@ -176,7 +176,7 @@ def test_pipeline_end_to_end_and_resume(setup, tmp_path):
 def test_prelim_reuses_a_finished_reconstruction(setup, tmp_path):
     data, _, relight, cache = setup
     base = tmp_path / "base"
-    train_run(data, base, regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
+    train_from_preset(data, base, regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
     cfg = PipelineConfig(augment=("relight",), relight_lights=1, relight_model=str(relight), relight_steps=1,
                          relight_samples=1, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache),
                          prelim_run=str(base))
@@ -208,7 +208,7 @@ def test_prelim_reuses_a_finished_reconstruction(setup, tmp_path):
 def test_a_preliminary_run_is_reused_after_its_capture_moved_but_not_with_other_images(setup, tmp_path):
     data, _, relight, cache = setup
     base = tmp_path / "base"
-    train_run(data, base, regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
+    train_from_preset(data, base, regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
     moved = shutil.copytree(data, tmp_path / "moved")
     cfg = PipelineConfig(augment=("relight",), relight_lights=1, relight_model=str(relight), relight_steps=1,
                          relight_samples=1, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache),
@@ -386,7 +386,7 @@ def test_the_novel_views_warp_with_the_geometry_given_or_else_the_preliminary_re
     from diamond_sss.pipeline.run import checked_config, nvs_geometry
 
     prelim = tmp_path / "prelim"
-    train_run(setup[0], prelim, regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
+    train_from_preset(setup[0], prelim, regime="views=2,lights=1", overrides=TRAIN, show_progress=False)
     default = nvs_geometry(PipelineConfig(), prelim)
     assert isinstance(default, RenderedGeometry) and default.run == prelim
     assert isinstance(nvs_geometry(PipelineConfig(nvs_geometry="maps"), prelim), StoredMapsGeometry)
@@ -395,25 +395,22 @@ def test_the_novel_views_warp_with_the_geometry_given_or_else_the_preliminary_re
         checked_config(PipelineConfig(nvs_geometry=str(tmp_path / "missing")))
 
 
-def test_prelim_iterations_scale_the_final_reconstructions_schedule(setup, tmp_path, monkeypatch):
+def test_prelim_iterations_scale_the_final_reconstructions_schedule(setup, tmp_path):
     import diamond_sss.pipeline.run as pipeline_run
     from diamond_sss.training.config import short_schedule
     from diamond_sss.training.overrides import make_config
 
     data, _, relight, _ = setup
-    seen = {}
-    monkeypatch.setattr(pipeline_run, "train_run", lambda data, out, **kwargs: seen.update(kwargs) or
-                        type("Result", (), {"steps": 0})())
     cfg = PipelineConfig(augment=("relight",), relight_model=str(relight), prelim_iterations=400)
     ctx, _ = pipeline_run.prepare_run(data, tmp_path, split="train", regime="views=2,lights=1", preset="diamond",
                                       overrides={**short_schedule(1000), "device": "cpu"}, seed=3, cfg=cfg,
                                       show_progress=False)
-    pipeline_run.prelim_stage(ctx)
-    prelim = make_config("diamond", overrides=seen["overrides"])
+    prelim = ctx.prelim_cfg
     # every step-valued key scaled by 400 / 1000, also those short_schedule leaves at the preset's (image logs)
     assert prelim == make_config("diamond", overrides={**short_schedule(400), "image_log_every": 200,
                                                        "device": "cpu", "seed": 3})
     assert (prelim.schedule.iterations, prelim.lr.decay_step, prelim.densify.refine_stop_iter) == (400, 280, 340)
+    assert ctx.train_cfg.schedule.iterations == 1000
 
 
 def test_the_preliminary_reconstruction_takes_its_own_preset_and_overrides(setup, tmp_path, monkeypatch):
@@ -423,7 +420,7 @@ def test_the_preliminary_reconstruction_takes_its_own_preset_and_overrides(setup
 
     data, _, relight, _ = setup
     seen = {}
-    monkeypatch.setattr(pipeline_run, "train_run", lambda data, out, **kwargs: seen.update(kwargs) or
+    monkeypatch.setattr(pipeline_run, "train_run", lambda data, out, config, **kwargs: seen.update(config=config) or
                         type("Result", (), {"steps": 0})())
     final = {**short_schedule(1000, pipeline_final=True), "device": "cpu"}
     prelim = {**short_schedule(1000), "device": "cpu"}
@@ -433,13 +430,102 @@ def test_the_preliminary_reconstruction_takes_its_own_preset_and_overrides(setup
                                            overrides=final, prelim_overrides=prelim, seed=3, cfg=cfg,
                                            show_progress=False)
     pipeline_run.prelim_stage(ctx)
-    assert seen["preset"] == "sss3dgs" and inputs["prelim_overrides"] == {**prelim, "seed": 3}
-    trained = make_config("sss3dgs", overrides=seen["overrides"])
-    assert trained == make_config("sss3dgs", overrides={**short_schedule(500), "image_log_every": 250,
-                                                        "device": "cpu", "seed": 3})
+    assert inputs["preset"] == "diamond" and inputs["prelim_overrides"] == {**prelim, "seed": 3}
+    trained = seen["config"]  # the configuration prepare_run resolved, handed down as it is
+    assert trained is ctx.prelim_cfg and trained == make_config(
+        "sss3dgs", overrides={**short_schedule(500), "image_log_every": 250, "device": "cpu", "seed": 3})
     assert trained.losses.photometric_error == "l1" and ctx.train_cfg.losses.photometric_error == "rmse"
     with pytest.raises(ValueError, match="unknown preset"):
         pipeline_run.prepare_run(data, tmp_path / "bad", split="train", regime="views=2,lights=1", preset="diamond",
                                  overrides=final, prelim_overrides=None, seed=3,
                                  cfg=PipelineConfig(augment=("relight",), relight_model=str(relight),
                                                     prelim_preset="sss4dgs"), show_progress=False)
+    assert not (tmp_path / "bad").exists()  # refused before the run's folder is made
+
+
+def test_a_pipeline_run_resolves_each_reconstructions_configuration_once(setup, tmp_path, monkeypatch):
+    """The preliminary and the final configurations are made once each, in prepare_run, and handed down to the
+    trainings (before issue 61: 8 calls, 5 of them resolving the same two recipes again); the generated images
+    weigh the pipeline's synthetic_weight."""
+    import sys
+
+    import diamond_sss.pipeline.run as pipeline_run
+    from diamond_sss.training import overrides
+
+    data, _, relight, cache = setup
+    original, calls, trained = overrides.make_config, [], {}
+
+    def counted(*args, **kwargs):
+        calls.append(args[:1] or kwargs.get("preset"))
+        return original(*args, **kwargs)
+
+    def recorded(data, out, config, **kwargs):
+        trained[out.name] = (config, [source.weight for source in kwargs.get("extra_sources", ())])
+        return train_run(data, out, config, **kwargs)
+
+    for module in [module for name, module in sys.modules.items() if name.startswith("diamond_sss")]:
+        if getattr(module, "make_config", None) is original:
+            monkeypatch.setattr(module, "make_config", counted)
+    train_run = pipeline_run.train_run
+    monkeypatch.setattr(pipeline_run, "train_run", recorded)
+    cfg = PipelineConfig(augment=("relight",), relight_lights=1, relight_model=str(relight), relight_steps=1,
+                         relight_samples=1, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache),
+                         prelim_iterations=3, synthetic_weight=0.25)
+    run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
+    assert len(calls) == 2, calls
+    assert trained["prelim"][0].schedule.iterations == 3 and trained["final"][0].schedule.iterations == 2
+    assert trained["final"][1] == [0.25]  # the one generated source (power 0: no extra real copies here)
+    inputs = json.loads((tmp_path / "pipeline.json").read_text())["inputs"]
+    assert inputs["pipeline"]["synthetic_weight"] == 0.25 and inputs["overrides"] == {**TRAIN, "seed": 0}
+    calls.clear()
+    again = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg, show_progress=False)
+    assert len(calls) == 2 and "psnr" in again  # resumed: every stage's record reused, the inputs the same
+
+
+def test_synthetic_weight_is_a_pipeline_setting_and_earlier_runs_still_load(setup, tmp_path, capsys, monkeypatch):
+    """synthetic_weight (issue 61: a reconstruction key before, read only by the pipeline) is the pipeline's
+    --synthetic-weight: given as a config key it is refused naming that flag, before anything is written; a run
+    folder's config.json and a pipeline.json recorded with it still load and resume."""
+    import diamond_sss.pipeline.run as pipeline_run
+    from diamond_sss.cli.main import main
+    from diamond_sss.pipeline.run import checked_config, compared_inputs
+    from diamond_sss.training.overrides import load_run_config, make_config
+
+    assert PipelineConfig().synthetic_weight == 0.5
+    for key in ("synthetic_weight", "losses.synthetic_weight"):
+        with pytest.raises(ValueError, match=f"config key '{key}' is a setting of the pipeline.*--synthetic-weight"):
+            make_config(sets=[f"{key}=1"])
+    path = tmp_path / "best.json"
+    path.write_text(json.dumps({"losses": {"synthetic_weight": 1.0}}))
+    with pytest.raises(ValueError, match="best.json: config key 'losses.synthetic_weight' is a setting of the"):
+        make_config(config_file=path)
+    with pytest.raises(ValueError, match=r"'synthetic_weight' \(--synthetic-weight\) must be a finite number >= 0"):
+        checked_config(PipelineConfig(synthetic_weight=-1.0))
+    for command in ("train", "run"):
+        out = tmp_path / command
+        with pytest.raises(SystemExit):
+            main([command, "--data", str(setup[0]), "--out", str(out), "--quiet", "--set", "synthetic_weight=1"])
+        assert "give it to `diamond-sss run` as --synthetic-weight" in capsys.readouterr().err
+        assert not out.exists()
+    seen = {}
+    monkeypatch.setattr(pipeline_run, "run_pipeline", lambda data, out, **kwargs: seen.update(kwargs) or {})
+    main(["run", "--data", str(setup[0]), "--out", str(tmp_path / "run"), "--quiet", "--synthetic-weight", "0.25"])
+    assert seen["config"].synthetic_weight == 0.25
+    # an earlier run's config.json, nested or flat, records the key: it loads without it
+    run = tmp_path / "earlier"
+    run.mkdir()
+    nested = make_config("sss3dgs").to_dict()
+    nested["losses"]["synthetic_weight"] = 0.5
+    (run / "config.json").write_text(json.dumps(nested))
+    assert load_run_config(run) == make_config("sss3dgs")
+    (run / "config.json").write_text(json.dumps({**make_config("sss3dgs").flat(), "synthetic_weight": 0.5}))
+    assert load_run_config(run) == make_config("sss3dgs")
+    # an earlier pipeline.json: the final reconstruction's value (else the default) reads as the pipeline's setting
+    now = {"overrides": {"seed": 0}, "prelim_overrides": {"seed": 0}, "pipeline": {"synthetic_weight": 1.0}}
+    before = {"overrides": {"seed": 0, "synthetic_weight": 1.0}, "prelim_overrides": {"seed": 0,
+                                                                                      "synthetic_weight": 1.0},
+              "pipeline": {}}
+    assert compared_inputs(before) == compared_inputs(now)
+    default = {**now, "pipeline": {"synthetic_weight": 0.5}}
+    assert compared_inputs({**before, "overrides": {"seed": 0}, "prelim_overrides": {"seed": 0}}) == compared_inputs(
+        default) != compared_inputs(now)

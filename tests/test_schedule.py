@@ -11,6 +11,7 @@ from diamond_sss.data.analytic import make_capture
 from diamond_sss.training.averaging import averaging_start
 from diamond_sss.training.config import FIELDS, scale_schedule, schedule_for, short_schedule
 from diamond_sss.training.overrides import (
+    config_file_values,
     load_run_config,
     make_config,
     scaled_run_schedule,
@@ -109,7 +110,7 @@ def test_run_schedule_scales_the_preset_and_config_file_but_not_set_keys(tmp_pat
     assert changes["densify.refine_start_iter"] == (500, 50) and "lr.position_delay_steps" not in changes
     best = tmp_path / "best.json"
     best.write_text(json.dumps({"densify_from_iter": 800}))
-    scaled, _ = scaled_run_schedule("sss3dgs", 500, config_file=best, sets=["checkpoint_every=7"])
+    scaled, _ = scaled_run_schedule("sss3dgs", 500, given=config_file_values(best), fixed=["checkpoint_every"])
     assert scaled["densify.refine_start_iter"] == 40 and scaled["densify.refine_stop_iter"] == 750
     assert "runtime.checkpoint_every" not in scaled
 
@@ -182,16 +183,16 @@ def test_short_run_overrides_are_the_benchmarks_settings_under_the_config_files(
     assert "schedule.average_last" not in final and "shading.sss_angular_inputs" not in final
     best = tmp_path / "best.json"
     best.write_text(json.dumps({"sss_lr": 0.002, "lr": {"decay_factor": 0.5}}))
-    tuned = short_run_overrides(1000, config_file=best)
+    tuned = short_run_overrides(1000, given=config_file_values(best))
     assert "lr.sss" not in tuned and "lr.decay_factor" not in tuned and tuned["shading.sss_width"] == 64
     resolved = make_config("diamond", overrides=tuned, config_file=best)
     assert (resolved.lr.sss, resolved.lr.decay_factor, resolved.lr.decay_step) == (0.002, 0.5, 700)
     best.write_text("[0.002]")
     with pytest.raises(ValueError, match="best.json: expected a JSON object of config keys"):
-        short_run_overrides(1000, config_file=best)
+        config_file_values(best)
     best.write_text(json.dumps({"sss_lr": "fast"}))
     with pytest.raises(ValueError, match="best.json: .*sss"):
-        short_run_overrides(1000, config_file=best)
+        config_file_values(best)
 
 
 @pytest.mark.parametrize("flag", [[], ["--short-run"], ["--short-run", "--preset", "auto"]])
@@ -206,7 +207,7 @@ def test_the_default_preset_trains_with_the_short_run_settings(tmp_path, monkeyp
     import diamond_sss.training.run as training_run
 
     seen = {}
-    monkeypatch.setattr(training_run, "train_run", lambda data, out, **kwargs: seen.update(kwargs) or
+    monkeypatch.setattr(training_run, "train_run", lambda data, out, config, **kwargs: seen.update(trained=config) or
                         dataclasses.make_dataclass("R", ["steps", "seconds", "num_gaussians", "final_loss"])(1, 0, 1, 0))
     monkeypatch.setattr(pipeline_run, "run_pipeline", lambda data, out, **kwargs: seen.update(kwargs) or {})
     base = [command, "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--regime", regime, "--quiet"]
@@ -214,10 +215,10 @@ def test_the_default_preset_trains_with_the_short_run_settings(tmp_path, monkeyp
     expected = short_run_overrides(2000, dense=regime == "all", pipeline_final=command == "run")
     said = " ".join(capsys.readouterr().out.split())
     assert "preset auto = diamond with the short-run settings for 2000 steps" in said
-    assert seen["preset"] == "diamond"
     if command == "train":
-        assert seen["overrides"] == expected and seen["sets"] == ["sss_width=32"]
+        assert seen["trained"] == make_config("diamond", overrides={**expected, "sss_width": 32})
     else:
+        assert seen["preset"] == "diamond"
         assert seen["overrides"] == {**expected, "sss_width": 32}
         assert seen["prelim_overrides"] == {**short_run_overrides(2000), "sss_width": 32}
         assert seen["config"].prelim_preset == "sss3dgs"  # the benchmarks' preliminary reconstruction
@@ -225,7 +226,8 @@ def test_the_default_preset_trains_with_the_short_run_settings(tmp_path, monkeyp
         main([*base, *flag, "--prelim-preset", "diamond"])
         assert seen["config"].prelim_preset == "diamond"
     main([*base, *flag])
-    assert seen["overrides"]["schedule.iterations"] == 1000
+    assert (seen["trained"].schedule.iterations if command == "train" else
+            seen["overrides"]["schedule.iterations"]) == 1000
     with pytest.raises(SystemExit):
         main([*base, *flag, "--keep-schedule", "--iterations", "10"])
     assert ("give one of them" if flag else "keeps a named preset's schedule") in capsys.readouterr().err
@@ -243,7 +245,7 @@ def test_pipeline_iterations_scale_the_schedule_unless_kept(tmp_path, monkeypatc
     base = ["run", "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--quiet", "--iterations", "1000",
             "--preset", "diamond"]
     main([*base, "--set", "densification_interval=20"])
-    scaled, _ = scaled_run_schedule("diamond", 1000, sets=["densification_interval=20"])
+    scaled, _ = scaled_run_schedule("diamond", 1000, fixed=["densification_interval"])
     assert seen["overrides"] == {**scaled, "densification_interval": 20}
     assert seen["overrides"]["densify.refine_start_iter"] == 50
     main([*base, "--keep-schedule"])

@@ -90,6 +90,29 @@ def test_overrides_sets_and_config_files(tmp_path):
         make_config("fast")
 
 
+
+@pytest.mark.parametrize(("given", "message"), [
+    ("lambda_depth=-0.1", "config key 'losses.lambda_depth' must be >= 0, got -0.1"),
+    ("iterations=0", "config key 'schedule.iterations' must be positive, got 0"),
+    ("lambda_dssim=1.5", r"config key 'losses.lambda_dssim' must be in \[0, 1\], got 1.5"),
+    ("mv_start_fraction=1", r"config key 'multiview.start_fraction' must be in \[0, 1\), got 1.0"),
+    ("mv_sil_tolerance=0", r"config key 'multiview.sil_tolerance' must be in \(0, 1\], got 0.0"),
+    ("mv_depth_tolerance=-0.01", "config key 'multiview.depth_tolerance' must be >= 0, got -0.01"),
+    ("prune_opa=2", r"config key 'densify.prune_opa' must be in \[0, 1\], got 2.0"),
+    ("raytrace_directions=-1", "config key 'raytrace.directions' must be >= 0, got -1"),
+])
+def test_a_value_out_of_range_is_refused_when_the_config_is_made_before_a_run_writes_anything(
+        capture, tmp_path, capsys, given, message):
+    """Ranges are checked by make_config, naming the key, what it expects and what was given: `train` stops before
+    its run folder (config.json, regime.json) exists, not at the first training step."""
+    with pytest.raises(ValueError, match=message):
+        make_config(sets=[given])
+    run = tmp_path / "run"
+    with pytest.raises(SystemExit):
+        main(["train", "--data", str(capture), "--out", str(run), "--quiet", "--set", given])
+    assert message.replace("\\", "").split(" must")[0] in capsys.readouterr().err
+    assert not run.exists()
+
 def test_exponential_lr_schedule():
     assert exponential_lr(0, 1e-2, 1e-4, 100) == pytest.approx(1e-2)
     assert exponential_lr(100, 1e-2, 1e-4, 100) == pytest.approx(1e-4)

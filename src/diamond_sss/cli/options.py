@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import typing
-from collections.abc import Collection, Sequence
-from pathlib import Path
+from collections.abc import Collection, Mapping
 from typing import Annotated, Any
 
 import tyro
@@ -55,8 +54,8 @@ PresetArg = Annotated[str, tyro.conf.arg(help=(
 
 
 def schedule_overrides(preset: str, iterations: int | None, *, keep_schedule: bool = False, short_run: bool = False,
-                       dense: bool = False, pipeline_final: bool = False, config_file: Path | None = None,
-                       sets: Sequence[str] = ()) -> tuple[str, dict[str, Any], str | None]:
+                       dense: bool = False, pipeline_final: bool = False, given: Mapping[str, Any] | None = None,
+                       fixed: Collection[str] = ()) -> tuple[str, dict[str, Any], str | None]:
     """The preset that ``preset`` resolves to, the config overrides (dotted keys) of ``--iterations``,
     ``--keep-schedule`` and ``--short-run``, and a line saying what they changed (``None`` when nothing was asked).
 
@@ -64,9 +63,10 @@ def schedule_overrides(preset: str, iterations: int | None, *, keep_schedule: bo
     with the short-run settings, as ``short_run`` gives them to a named preset:
     :func:`diamond_sss.training.overrides.short_run_overrides` for ``iterations`` steps (default
     :data:`~diamond_sss.training.config.SHORT_SCHEDULE`'s 1000; a ``dense`` capture's or a ``pipeline_final``
-    reconstruction's settings with them). Otherwise the step-valued keys of ``preset`` (+ ``config_file``) scaled to
-    ``iterations`` (:func:`~diamond_sss.training.overrides.scaled_run_schedule`; keys in ``sets`` keep their value),
-    or with ``keep_schedule`` only the step count changed.
+    reconstruction's settings with them), less the ``given`` keys (the checked values of ``--config``). Otherwise the
+    step-valued keys of ``preset`` (+ ``given``) scaled to ``iterations``
+    (:func:`~diamond_sss.training.overrides.scaled_run_schedule`; the ``fixed`` keys, those of ``--set``, keep their
+    value), or with ``keep_schedule`` only the step count changed.
     """
     from diamond_sss.training.config import AUTO_PRESET, SHORT_SCHEDULE
     from diamond_sss.training.overrides import scaled_run_schedule, short_run_overrides
@@ -81,7 +81,7 @@ def schedule_overrides(preset: str, iterations: int | None, *, keep_schedule: bo
                          "preset auto brings the short-run schedule, scaled to --iterations")
     if auto or short_run:
         steps = SHORT_SCHEDULE["iterations"] if iterations is None else iterations
-        settings = short_run_overrides(steps, dense=dense, pipeline_final=pipeline_final, config_file=config_file)
+        settings = short_run_overrides(steps, dense=dense, pipeline_final=pipeline_final, given=set(given or {}))
         listed = ", ".join(f"{key}={value}" for key, value in settings.items() if key != "schedule.iterations")
         said = (f"{'preset auto = diamond with the ' if auto else ''}short-run settings for {steps} steps "
                 f"(training.config.short_schedule): {listed}")
@@ -90,7 +90,7 @@ def schedule_overrides(preset: str, iterations: int | None, *, keep_schedule: bo
         return preset, {}, None
     if keep_schedule:
         return preset, {"schedule.iterations": iterations}, None
-    scaled, changes = scaled_run_schedule(preset, iterations, config_file=config_file, sets=sets)
+    scaled, changes = scaled_run_schedule(preset, iterations, given=given, fixed=fixed)
     listed = ", ".join(f"{key} {old}->{new}" for key, (old, new) in changes.items())
     return preset, scaled, (f"schedule scaled to {iterations} steps (--keep-schedule keeps the preset's): "
                             f"{listed or 'no change'}")

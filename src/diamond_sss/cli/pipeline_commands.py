@@ -56,16 +56,17 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
     from diamond_sss.training.overrides import parse_sets
 
     short = short_run or preset == AUTO_PRESET
+    sets = parse_sets(set_)
     preset, schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
-                                                pipeline_final=True, sets=set_)
-    overrides = {**schedule, **parse_sets(set_)}
+                                                pipeline_final=True, fixed=sets)
+    overrides = {**schedule, **sets}
     cfg = config_from(PipelineConfig, pipeline, augment=parse_augment(augment))
     prelim_overrides = None
     if short:
         prelim_preset, prelim_schedule, _ = schedule_overrides(cfg.prelim_preset or SHORT_RUN_PRELIM_PRESET,
                                                                iterations, short_run=True)
         cfg = replace(cfg, prelim_preset=prelim_preset)
-        prelim_overrides = {**prelim_schedule, **parse_sets(set_)}
+        prelim_overrides = {**prelim_schedule, **sets}
         final_only = ", ".join(f"{key}={schedule[key]}" for key in schedule if key not in prelim_schedule)
         said = (f"final reconstruction ({preset}): {said}\npreliminary reconstruction ({cfg.prelim_preset}): the same "
                 f"settings" + (f" without {final_only}" if final_only else "")

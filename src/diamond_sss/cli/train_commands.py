@@ -40,16 +40,19 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
         device: auto | cpu | cuda (runtime.device; default: --config's, else the preset's).
         quiet: no progress bar.
     """
+    from diamond_sss.training.overrides import checked_values, config_file_values, make_config, parse_sets
     from diamond_sss.training.run import train_run
 
     console = Console(soft_wrap=True)
+    from_file = config_file_values(config) if config is not None else {}
+    sets = checked_values(parse_sets(set_))
     preset, schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
-                                                dense=regime == "all", config_file=config, sets=set_)
+                                                dense=regime == "all", given=from_file, fixed=sets)
+    flags = checked_values(given_overrides(seed=seed, device=device))
+    resolved = make_config(preset, overrides={**from_file, **schedule, **flags, **sets})  # before anything is written
     if said:
         console.print(said)
-    overrides = {**schedule, **given_overrides(seed=seed, device=device)}
-    result = train_run(data, out, split=split, regime=regime, preset=preset, overrides=overrides,
-                       config_file=config, sets=set_, resume=resume, show_progress=not quiet)
+    result = train_run(data, out, resolved, split=split, regime=regime, resume=resume, show_progress=not quiet)
     console.print(f"trained {result.steps} steps in {result.seconds:.1f} s, {result.num_gaussians} Gaussians, "
                   f"final loss {result.final_loss:.4f} -> {out / 'model.safetensors'}")
 

@@ -18,6 +18,7 @@ from diamond_sss.evaluation.evaluate import render_observation
 from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.runs.folder import load_scene
+from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
 from diamond_sss.utils.io import atomic_write_json, atomic_write_text
 
@@ -65,8 +66,8 @@ def run_ablation(data: Path, out: Path, *, variants: Sequence[str] = tuple(VARIA
             run = out / regime_slug(regime) / variant
             started = time.perf_counter()
             regime_overrides = {**(overrides or {}), **((dense_overrides or {}) if regime == "all" else {})}
-            train_run(data, run, regime=regime, preset=preset, resume=True, show_progress=show_progress,
-                      overrides={**regime_overrides, **variant_overrides, "iterations": iterations})
+            config = make_config(preset, overrides={**regime_overrides, **variant_overrides, "iterations": iterations})
+            train_run(data, run, config, regime=regime, resume=True, show_progress=show_progress)
             metrics = evaluate_run(run, data, split="test", figures=0, show_progress=show_progress)
             rows.append(AblationRow(variant, regime, metrics, time.perf_counter() - started))
     write_ablation_report(out, rows, data, iterations)

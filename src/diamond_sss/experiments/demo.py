@@ -65,10 +65,10 @@ def _reconstruction(root: Path, run: Path, regime: str, preset: str, overrides: 
                     moved: list[Path], on_step: StepReporter | None = None) -> dict:
     """Train (or resume, or reuse when finished) one run folder and score it on the test split; ``on_step`` is
     told every step, and the run's length once it is trained."""
-    if (moved_run := move_aside_if_trained_otherwise(run, make_config(preset, overrides=overrides))) is not None:
+    config = make_config(preset, overrides=overrides)
+    if (moved_run := move_aside_if_trained_otherwise(run, config)) is not None:
         moved.append(moved_run)
-    result = train_run(root, run, regime=regime, preset=preset, overrides=overrides, resume=True,
-                       show_progress=show_progress, on_step=on_step)
+    result = train_run(root, run, config, regime=regime, resume=True, show_progress=show_progress, on_step=on_step)
     if on_step is not None:
         on_step(result.steps)
     return evaluate_run(run, root, figures=0, show_progress=show_progress)

@@ -60,6 +60,9 @@ class PipelineConfig:
                                                "preliminary reconstruction's silhouette are dropped")
     min_mask_fraction: float = described(0.002, "generated images whose mask covers a smaller fraction of the "
                                                 "image are dropped")
+    synthetic_weight: float = described(0.5, "photometric loss weight of a generated image in the final "
+                                             "reconstruction, relative to a real image's 1 (absolute, not "
+                                             "normalised in the batch)")
     agreement_power: float = described(0.0, "generated images whose sRGB error against the preliminary "
                                             "reconstruction's render exceeds the median error have their weight "
                                             "multiplied by (median / error)^power (0: every image at alpha)")

@@ -53,8 +53,8 @@ from diamond_sss.pipeline.capture import GeneratedImage, check_on_lattice, write
 from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
 from diamond_sss.pipeline.rig import LatticeSource, build_lattice
 from diamond_sss.runs.folder import load_scene
-from diamond_sss.training.config import TrainConfig
-from diamond_sss.training.overrides import make_config, rescheduled
+from diamond_sss.training.config import PIPELINE_KEYS, TrainConfig
+from diamond_sss.training.overrides import make_config, rescheduled, with_values
 from diamond_sss.training.run import train_run
 from diamond_sss.training.trainer import ImageSource
 from diamond_sss.utils.device import resolve_device
@@ -96,11 +96,22 @@ from the CPU to a GPU or to another cache."""
 
 def compared_inputs(inputs: Any) -> Any:
     """``inputs`` (a ``pipeline.json`` record) without the :data:`UNCOMPARED_SETTINGS`: what a resumed run must
-    share with the recorded one."""
+    share with the recorded one. A record made while a pipeline setting was a reconstruction's key
+    (:data:`~diamond_sss.training.config.PIPELINE_KEYS`) reads as the same run records it now: the final
+    reconstruction's value (else the default) among the pipeline's settings, none in the overrides."""
     if not (isinstance(inputs, dict) and isinstance(inputs.get("pipeline"), dict)):
         return inputs
     settings = {key: value for key, value in inputs["pipeline"].items() if key not in UNCOMPARED_SETTINGS}
-    return {**inputs, "pipeline": settings}
+    overrides = {key: dict(inputs[key]) for key in ("overrides", "prelim_overrides")
+                 if isinstance(inputs.get(key), dict)}
+    for dotted, setting in PIPELINE_KEYS.items():
+        final = overrides.get("overrides", {})
+        given = [final[key] for key in (dotted, setting) if key in final]
+        settings.setdefault(setting, given[-1] if given else getattr(PipelineConfig(), setting))
+        for record in overrides.values():
+            record.pop(dotted, None)
+            record.pop(setting, None)
+    return {**inputs, **overrides, "pipeline": settings}
 
 
 def changed_inputs(recorded: Any, given: Any, prefix: str = "") -> list[str]:
@@ -266,20 +277,18 @@ def _silhouette_ok(path: Path, mask_path: Path | None, reference_alpha: torch.Te
 
 @dataclass
 class PipelineContext:
-    """What the stages share: the run's inputs, the real capture, the regime's selection, the preliminary
-    reconstruction's folder, the lattice the diffusion stages generate on (the capture's own, or one made for it:
-    :mod:`~diamond_sss.pipeline.rig`) and its view and light directions."""
+    """What the stages share: the run's inputs, the resolved configurations of the preliminary and the final
+    reconstruction, the real capture, the regime's selection, the preliminary reconstruction's folder, the lattice the
+    diffusion stages generate on (the capture's own, or one made for it: :mod:`~diamond_sss.pipeline.rig`) and its
+    view and light directions."""
 
     data: Path
     out: Path
     split: str
     regime: str
-    preset: str
-    overrides: dict[str, Any]
-    prelim_preset: str
-    prelim_overrides: dict[str, Any]
     seed: int
     cfg: PipelineConfig
+    prelim_cfg: TrainConfig
     train_cfg: TrainConfig
     real: OLATDataset
     selection: RegimeSelection
@@ -320,6 +329,9 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
                              f"got {getattr(cfg, key)}")
     if not (math.isfinite(cfg.agreement_power) and cfg.agreement_power >= 0.0):
         raise ValueError(f"pipeline config 'agreement_power' must be a finite number >= 0, got {cfg.agreement_power}")
+    if not (math.isfinite(cfg.synthetic_weight) and cfg.synthetic_weight >= 0.0):
+        raise ValueError(f"pipeline config 'synthetic_weight' (--synthetic-weight) must be a finite number >= 0, got "
+                         f"{cfg.synthetic_weight}")
     if cfg.nvs_geometry is not None:
         from diamond_sss.diffusion.geometry import geometry_source
         from diamond_sss.diffusion.geometry.base import GeometryError
@@ -334,14 +346,18 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
 def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, overrides: dict[str, Any] | None,
                 seed: int, cfg: PipelineConfig, prelim_overrides: dict[str, Any] | None = None,
                 show_progress: bool) -> tuple[PipelineContext, dict]:
-    """The shared state of a pipeline run into ``out`` (created) and its inputs as ``pipeline.json`` records them."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    """The shared state of a pipeline run into ``out`` (created once both configurations are resolved: a bad preset,
+    key or value fails before anything is written) and its inputs as ``pipeline.json`` records them. The preliminary
+    reconstruction's configuration is rescheduled to ``prelim_iterations`` here."""
     overrides = {**(overrides or {}), "seed": seed}
-    train_cfg = make_config(preset, overrides=overrides)
     prelim_preset = cfg.prelim_preset or preset
     prelim_overrides = overrides if prelim_overrides is None else {**prelim_overrides, "seed": seed}
-    make_config(prelim_preset, overrides=prelim_overrides)  # a bad preset or key fails here, before any stage
+    train_cfg = make_config(preset, overrides=overrides)
+    prelim_cfg = make_config(prelim_preset, overrides=prelim_overrides)
+    if cfg.prelim_iterations is not None:
+        prelim_cfg = with_values(prelim_cfg, rescheduled(prelim_cfg, cfg.prelim_iterations))
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     real = OLATDataset(data, split, downscale=train_cfg.runtime.downscale)
     if len(real.observations) < 2:
         raise DataError(f"{real.json_path}: {len(real.observations)} image; a reconstruction needs at least 2 "
@@ -371,8 +387,8 @@ def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, 
     if cfg.rig is not None:
         inputs["rig_sha256"] = sha256_file(cfg.rig)
     center = real.bounds.center
-    ctx = PipelineContext(data, out, split, regime, preset, overrides, prelim_preset, prelim_overrides, seed, cfg,
-                          train_cfg, real, selection, prelim_dir, lattice, lattice_source,
+    ctx = PipelineContext(data, out, split, regime, seed, cfg, prelim_cfg, train_cfg, real, selection, prelim_dir,
+                          lattice, lattice_source,
                           directions_from(lattice.camera_centers, center),
                           directions_from(lattice.light_positions, center), show_progress)
     return ctx, inputs
@@ -438,12 +454,8 @@ def prelim_stage(ctx: PipelineContext) -> dict:
     """The preliminary reconstruction on the regime's real images (or the reused ``prelim_run``)."""
     if ctx.cfg.prelim_run:
         return {"real_images": len(ctx.selection.observations), "reused": str(ctx.prelim_dir)}
-    prelim_overrides = dict(ctx.prelim_overrides)
-    if ctx.cfg.prelim_iterations is not None:
-        prelim_cfg = make_config(ctx.prelim_preset, overrides=prelim_overrides)
-        prelim_overrides.update(rescheduled(prelim_cfg, ctx.cfg.prelim_iterations))
-    result = train_run(ctx.data, ctx.prelim_dir, split=ctx.split, regime=ctx.regime, preset=ctx.prelim_preset,
-                       overrides=prelim_overrides, show_progress=ctx.show_progress, resume=True)
+    result = train_run(ctx.data, ctx.prelim_dir, ctx.prelim_cfg, split=ctx.split, regime=ctx.regime,
+                       show_progress=ctx.show_progress, resume=True)
     return {"real_images": len(ctx.selection.observations), "steps": result.steps}
 
 
@@ -566,7 +578,7 @@ def final_sources(ctx: PipelineContext, generated: list[GeneratedImage],
                                  agreement_factors(errors, ctx.cfg.agreement_power), strict=True))
             factors = [factor_of[obs.view, obs.light] for obs in synthetic.observations]
         extra = [ImageSource(ctx.real.subset(ctx.selection.observations), 1.0)] * copies + [
-            ImageSource(synthetic, ctx.train_cfg.losses.synthetic_weight, tuple(factors) if factors else None)]
+            ImageSource(synthetic, ctx.cfg.synthetic_weight, tuple(factors) if factors else None)]
     counts = {"real_images": num_real, "synthetic_images": len(generated), "dropped": dropped,
               "real_share": round(num_real / (num_real + len(generated)), 4),
               "real_draw_share": round((1 + copies) * num_real / ((1 + copies) * num_real + len(generated)), 4)}
@@ -579,8 +591,8 @@ def final_sources(ctx: PipelineContext, generated: list[GeneratedImage],
 
 def final_stage(ctx: PipelineContext, extra: list[ImageSource], counts: dict) -> dict:
     """The final reconstruction into ``<out>/final`` on the real images and the ``extra`` sources."""
-    result = train_run(ctx.data, ctx.out / "final", split=ctx.split, regime=ctx.regime, preset=ctx.preset,
-                       overrides=ctx.overrides, show_progress=ctx.show_progress, resume=True, extra_sources=extra)
+    result = train_run(ctx.data, ctx.out / "final", ctx.train_cfg, split=ctx.split, regime=ctx.regime,
+                       show_progress=ctx.show_progress, resume=True, extra_sources=extra)
     return {**counts, "steps": result.steps}
 
 

@@ -159,8 +159,6 @@ class Losses:
     lambda_subsurfacedness_smooth: float = _key(0.002, "weight of the subsurfaceness smoothness")
     lambda_sil: float = _key(0.5, "weight of the multi-view silhouette loss")
     lambda_depth: float = _key(0.3, "weight of the multi-view depth loss")
-    synthetic_weight: float = _key(0.5, "photometric loss weight of diffusion-generated images, relative to a "
-                                         "real image's 1 (absolute, not normalised in the batch)")
 
 
 @dataclass
@@ -280,13 +278,24 @@ def field_types() -> dict[str, type]:
             for name, hint in typing.get_type_hints(kind).items()}
 
 
+PIPELINE_KEYS: dict[str, str] = {"losses.synthetic_weight": "synthetic_weight"}
+"""Keys of earlier configurations that are pipeline settings since DIAMOND-SSS issue 61 (dotted key -> the
+:class:`~diamond_sss.pipeline.config.PipelineConfig` field, also their flat name): a run's ``config.json`` that
+records one loads without it (:func:`~diamond_sss.training.overrides.load_run_config`); given anywhere else, it is
+refused, naming the pipeline's flag."""
+
+
 def canonical_key(key: str) -> str:
-    """The dotted key of a dotted or flat ``key``; unknown keys raise ``ValueError`` naming similar keys."""
+    """The dotted key of a dotted or flat ``key``; unknown keys raise ``ValueError`` naming similar keys, the
+    :data:`PIPELINE_KEYS` naming the pipeline's flag."""
     key = key.strip()
     if key in FIELDS:
         return key
     if key in FLAT_KEYS:
         return FLAT_KEYS[key]
+    if (setting := PIPELINE_KEYS.get(key, key if key in PIPELINE_KEYS.values() else None)) is not None:
+        raise ValueError(f"config key '{key}' is a setting of the pipeline, not of a reconstruction: give it to "
+                         f"`diamond-sss run` as --{setting.replace('_', '-')} (`train` has no generated images)")
     names = (*FIELDS, *FLAT_KEYS)
     stem = key.split(".")[-1].split("_")[-1]
     close = difflib.get_close_matches(key, names, n=6, cutoff=0.7)

@@ -5,8 +5,8 @@
               + l_normal L_normals + l_incident L_incident + l_visibility L_raytrace
               + l_sil L_sil^MV + l_depth L_depth^MV
 
-``[.]_w``: per-image weighted (1 for real images, ``synthetic_weight`` = alpha for generated ones). ``E`` is each
-image's L1 (Eq. A.1) or RMSE (``losses.photometric_error``). ``E`` and D-SSIM compare sRGB values
+``[.]_w``: per-image weighted (1 for real images, the pipeline's ``synthetic_weight`` = alpha for generated
+ones). ``E`` is each image's L1 (Eq. A.1) or RMSE (``losses.photometric_error``). ``E`` and D-SSIM compare sRGB values
 (``losses.photometric_space``, or linear radiance), LPIPS sRGB, the regularisers linear radiance. Geometric terms (mask, normals, multi-view) use every image at full weight.
 With a background ``b`` (``shading.random_background``) the photometric and LPIPS terms compare ``L + (1 - alpha) b``
 with ``I + (1 - M) b`` (render and target over the same colour); the regularisers see the target over black.

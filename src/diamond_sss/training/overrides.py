@@ -11,7 +11,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +21,7 @@ from diamond_sss.training.config import (
     AUTO_PRESET,
     FIELDS,
     GROUPS,
+    PIPELINE_KEYS,
     PRESETS,
     TrainConfig,
     canonical_key,
@@ -136,9 +137,7 @@ def make_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = N
     values = config_file_values(config_file) if config_file is not None else {}
     values.update(checked_values(overrides or {}))
     values.update(checked_values(parse_sets(sets)))
-    config = with_values(PRESETS[preset], values)
-    validate_config(config)
-    return config
+    return validated(with_values(PRESETS[preset], values))
 
 
 POSITIVE_KEYS = ("schedule.iterations", "schedule.batch_size", "gaussians.count", "gaussians.max_count",
@@ -148,9 +147,18 @@ POSITIVE_KEYS = ("schedule.iterations", "schedule.batch_size", "gaussians.count"
                  "multiview.pixels_per_pair", "multiview.nearest_k")
 """Sizes and step periods that have no 'off' value (a loss or a process is turned off by its weight or flag)."""
 
-NON_NEGATIVE_INT_KEYS = ("shading.sss_light_depth", "shading.sss_position_freqs", "lr.sss_warmup_steps", "lr.position_delay_steps",
-                         "runtime.keep_checkpoints")
-"""Sizes and step counts where 0 means off (for ``runtime.keep_checkpoints``: no limit)."""
+NON_NEGATIVE_KEYS = ("shading.sss_light_depth", "shading.sss_position_freqs", "lr.sss_warmup_steps",
+                     "lr.position_delay_steps", "runtime.keep_checkpoints", "runtime.cpu_threads",
+                     "densify.refine_start_iter", "densify.refine_stop_iter", "densify.grow_grad2d",
+                     "densify.grow_scale3d", "raytrace.directions", "multiview.occlusion_tol",
+                     "multiview.charbonnier_eps", "multiview.depth_tolerance")
+"""Sizes, step counts and tolerances where 0 means off or none (for ``runtime.keep_checkpoints``: no limit; for
+``runtime.cpu_threads``: torch's default), besides the loss weights and learning rates."""
+
+FRACTIONS = {"losses.lambda_dssim": "[0, 1]", "densify.prune_opa": "[0, 1]", "multiview.sil_threshold": "[0, 1]",
+             "multiview.sil_tolerance": "(0, 1]", "multiview.start_fraction": "[0, 1)",
+             "schedule.average_last": "[0, 1)"}
+"""Shares, opacities and silhouette values: the interval each lies in (``(`` and ``)`` leave the end out)."""
 
 CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"), "gaussians.hull_masks": ("real", "all"),
            "losses.photometric_space": ("linear", "srgb"),
@@ -158,15 +166,22 @@ CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"), "gaussians.hull_
            "shading.light_falloff": ("none", "inverse_square")}
 
 
-def validate_config(config: TrainConfig) -> None:
-    """Reject values that cannot work, naming the key."""
+def _within(value: float, interval: str) -> bool:
+    """Whether ``value`` lies in ``interval``, one of :data:`FRACTIONS`' (within [0, 1])."""
+    above = value > 0 if interval[0] == "(" else value >= 0
+    below = value < 1 if interval[-1] == ")" else value <= 1
+    return above and below
+
+
+def validated(config: TrainConfig) -> TrainConfig:
+    """``config`` once every value is checked: values that cannot work raise ``ValueError`` naming the key, what
+    it expects and what was given, before a run writes anything."""
     for key in POSITIVE_KEYS:
         if config.get(key) <= 0:
             raise ValueError(f"config key '{key}' must be positive, got {config.get(key)}")
-    non_negative = [f"losses.{f.name}" for f in dataclasses.fields(config.losses)
-                    if f.name.startswith("lambda_") or f.name == "synthetic_weight"]
+    non_negative = [f"losses.{f.name}" for f in dataclasses.fields(config.losses) if f.name.startswith("lambda_")]
     non_negative += [f"lr.{f.name}" for f in dataclasses.fields(config.lr) if f.type in (float, "float")]
-    non_negative += NON_NEGATIVE_INT_KEYS
+    non_negative += NON_NEGATIVE_KEYS
     for key in non_negative:
         if not config.get(key) >= 0:
             raise ValueError(f"config key '{key}' must be >= 0, got {config.get(key)}")
@@ -179,10 +194,12 @@ def validate_config(config: TrainConfig) -> None:
     device = config.runtime.device
     if device not in ("auto", "cpu", "cuda") and not device.startswith("cuda:"):
         raise ValueError(f"config key 'runtime.device' must be auto|cpu|cuda[:i], got '{device}'")
-    if not 0 <= config.schedule.average_last < 1:
-        raise ValueError(f"config key 'schedule.average_last' must be in [0, 1), got {config.schedule.average_last}")
+    for key, interval in FRACTIONS.items():
+        if not _within(config.get(key), interval):
+            raise ValueError(f"config key '{key}' must be in {interval}, got {config.get(key)}")
     if config.runtime.downscale < 1:
         raise ValueError(f"config key 'runtime.downscale' must be >= 1, got {config.runtime.downscale}")
+    return config
 
 
 def describe_config(preset: str = "diamond", overrides: Mapping[str, Any] | None = None
@@ -200,14 +217,14 @@ def rescheduled(config: TrainConfig, iterations: int) -> dict[str, Any]:
     return schedule_for({key: config.get(key) for key in FIELDS}, iterations)
 
 
-def scaled_run_schedule(preset: str, iterations: int, config_file: Path | None = None,
-                        sets: Sequence[str] = ()) -> tuple[dict[str, Any], dict[str, tuple[Any, Any]]]:
-    """Overrides (dotted keys) that scale the schedule of ``preset`` (+ ``config_file``) to ``iterations``
-    steps, and the changed keys as ``key -> (before, after)``. Keys given in ``sets`` keep their ``--set``
-    value."""
-    config = make_config(preset, config_file=config_file)
+def scaled_run_schedule(preset: str, iterations: int, given: Mapping[str, Any] | None = None,
+                        fixed: Collection[str] = ()) -> tuple[dict[str, Any], dict[str, tuple[Any, Any]]]:
+    """Overrides (dotted keys) that scale the schedule of ``preset`` (+ ``given``, the values of a ``--config``
+    file: :func:`config_file_values`) to ``iterations`` steps, and the changed keys as ``key -> (before, after)``.
+    The ``fixed`` keys (dotted or flat: those ``--set`` gives) keep their value."""
+    config = make_config(preset, overrides=given)
     base = {key: config.get(key) for key in FIELDS}
-    fixed = {canonical_key(key) for key in parse_sets(sets)}
+    fixed = {canonical_key(key) for key in fixed}
     scaled = {key: value for key, value in rescheduled(config, iterations).items() if key not in fixed}
     changes = {key: (base[key], value) for key, value in scaled.items()
                if key != "schedule.iterations" and value != base[key]}
@@ -215,22 +232,37 @@ def scaled_run_schedule(preset: str, iterations: int, config_file: Path | None =
 
 
 def short_run_overrides(iterations: int, *, dense: bool = False, pipeline_final: bool = False,
-                        config_file: Path | None = None) -> dict[str, Any]:
+                        given: Collection[str] = ()) -> dict[str, Any]:
     """:func:`~diamond_sss.training.config.short_schedule` (the settings measured for runs of 1,000 to 10,000 steps
-    on 64-px captures: the demo's and the benchmarks') as dotted overrides, less the keys that ``config_file``
-    sets, so that the file's values come after the short-run settings (and ``--set``'s after both)."""
-    given = set(config_file_values(config_file)) if config_file is not None else set()
+    on 64-px captures: the demo's and the benchmarks') as dotted overrides, less the ``given`` keys (dotted: those of
+    a ``--config`` file, :func:`config_file_values`), so that the file's values come after the short-run settings
+    (and ``--set``'s after both)."""
     settings = checked_values(short_schedule(iterations, dense=dense, pipeline_final=pipeline_final))
     return {key: value for key, value in settings.items() if key not in given}
 
 
+def without_pipeline_keys(values: Mapping[str, Any]) -> dict[str, Any]:
+    """A nested, dotted or flat mapping of config keys without the
+    :data:`~diamond_sss.training.config.PIPELINE_KEYS` that earlier runs recorded."""
+    kept = {}
+    for key, value in values.items():
+        if key in GROUPS and isinstance(value, Mapping):
+            kept[key] = {name: inner for name, inner in value.items() if f"{key}.{name}" not in PIPELINE_KEYS}
+        elif key not in PIPELINE_KEYS and key not in PIPELINE_KEYS.values():
+            kept[key] = value
+    return kept
+
+
 def load_run_config(run: Path) -> TrainConfig:
-    """The resolved configuration saved in a run folder (``config.json``, nested or flat)."""
+    """The resolved configuration saved in a run folder (``config.json``, nested or flat; a setting it records
+    that is the pipeline's now, :data:`~diamond_sss.training.config.PIPELINE_KEYS`, left out)."""
     path = Path(run) / "config.json"
     if not path.is_file():
         raise ValueError(f"{run} is not a training run: {path} is missing")
+    recorded = read_json(path)
+    if not isinstance(recorded, dict):
+        raise DataError(f"{path}: expected a JSON object of config keys")
     try:
-        return make_config("diamond", config_file=path)
+        return validated(with_values(PRESETS["diamond"], checked_values(without_pipeline_keys(recorded))))
     except ValueError as exc:
-        message = str(exc)
-        raise DataError(message if message.startswith(f"{path}:") else f"{path}: {message}") from exc
+        raise DataError(f"{path}: {exc}") from exc

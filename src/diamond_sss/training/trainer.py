@@ -420,8 +420,6 @@ class Trainer:
         that term), and gives no silhouette correspondences.
         """
         cfg = self.cfg
-        if not 0.0 <= cfg.multiview.start_fraction < 1.0:
-            raise ValueError(f"multiview.start_fraction must lie in [0, 1), got {cfg.multiview.start_fraction}")
         if step < cfg.multiview.start_fraction * cfg.schedule.iterations:
             return {}
         generator = rng.stream_generator(cfg.schedule.seed, step, 2)
