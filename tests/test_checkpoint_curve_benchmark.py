@@ -8,7 +8,7 @@ import sys
 import pytest
 from repo_scripts import load_script
 
-from diamond_sss.data.analytic import make_capture
+from diamond_sss.data.analytic import make_capture_with_test_split
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.training.run import train_from_preset
 
@@ -23,8 +23,7 @@ TINY = {"iterations": 6, "checkpoint_every": 2, "keep_checkpoints": 0, "num_gaus
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     root = tmp_path_factory.mktemp("curve")
-    make_capture(root / "capture", views=4, lights=2, size=16)
-    make_capture(root / "capture", views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
+    make_capture_with_test_split(root / "capture", views=4, lights=2, size=16)
     train_from_preset(root / "capture", root / "run", overrides=TINY, show_progress=False)
     return root / "run"
 

@@ -13,7 +13,7 @@ import torch
 
 from diamond_sss.cli.main import main
 from diamond_sss.data import OLATDataset
-from diamond_sss.data.analytic import make_capture
+from diamond_sss.data.analytic import make_capture_with_test_split
 from diamond_sss.errors import DamagedFileError, DataError
 from diamond_sss.training.checkpoint import checkpoint_folders, load_checkpoint, resume_checkpoint
 from diamond_sss.training.overrides import load_run_config, make_config
@@ -33,10 +33,7 @@ def truncate(path, keep: float = 0.5) -> None:
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
-    root = tmp_path_factory.mktemp("capture")
-    make_capture(root, views=4, lights=2, size=12)
-    make_capture(root, views=2, lights=1, size=12, split="test", camera_offset=0.4, light_offset=0.9)
-    return root
+    return make_capture_with_test_split(tmp_path_factory.mktemp("capture"), views=4, lights=2, size=12, test_lights=1)
 
 
 @pytest.fixture(scope="module")

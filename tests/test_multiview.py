@@ -249,14 +249,19 @@ def test_points_at_or_before_the_near_plane_are_dropped():
 # ----------------------------------------------------------------------------- normalisation and edge cases
 
 
-def test_duplicated_correspondences_leave_the_loss_unchanged():
+def offset_plane_pair():
+    """Two cameras over the ground plane with the source's depth 0.1 too far, a silhouette ramp and a square
+    foreground mask: ``(src, tgt, src_depth, tgt_depth, sil, mask)``."""
     src = camera((0.3, -0.2, 3.0), (0.0, 0.0, 0.0))
     tgt = camera((1.0, 0.6, 2.8), (0.1, 0.0, 0.0))
-    src_depth = ground_plane_depth(*src) + 0.1
-    tgt_depth = ground_plane_depth(*tgt)
     sil = torch.linspace(0.0, 1.0, SIZE, dtype=torch.float64).expand(SIZE, SIZE).contiguous()
     mask = torch.zeros(SIZE, SIZE)
     mask[8:24, 8:24] = 1.0
+    return src, tgt, ground_plane_depth(*src) + 0.1, ground_plane_depth(*tgt), sil, mask
+
+
+def test_duplicated_correspondences_leave_the_loss_unchanged():
+    src, tgt, src_depth, tgt_depth, sil, mask = offset_plane_pair()
     uv = sample_foreground_pixels(mask, 50, torch.Generator().manual_seed(0)).to(torch.float64)
     cfg = MultiViewConfig(occlusion_tol=1.0, sil_threshold=0.3)
     once = run(src, tgt, src_depth, tgt_depth, cfg, uv=uv, sil=sil)
@@ -602,13 +607,7 @@ def test_trainer_terms_start_late_and_unobserved_targets_have_no_silhouette(tmp_
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_cuda_matches_cpu():
-    src = camera((0.3, -0.2, 3.0), (0.0, 0.0, 0.0))
-    tgt = camera((1.0, 0.6, 2.8), (0.1, 0.0, 0.0))
-    src_depth = ground_plane_depth(*src) + 0.1
-    tgt_depth = ground_plane_depth(*tgt)
-    sil = torch.linspace(0.0, 1.0, SIZE, dtype=torch.float64).expand(SIZE, SIZE).contiguous()
-    mask = torch.zeros(SIZE, SIZE)
-    mask[8:24, 8:24] = 1.0
+    src, tgt, src_depth, tgt_depth, sil, mask = offset_plane_pair()
     cfg = MultiViewConfig(occlusion_tol=1.0, sil_threshold=0.3)
     results = []
     for device in ("cpu", "cuda"):

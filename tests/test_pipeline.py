@@ -13,7 +13,7 @@ import torch
 from tiny_models import TINY_NVS, TINY_RELIGHT
 
 from diamond_sss.data import OLATDataset
-from diamond_sss.data.analytic import make_capture
+from diamond_sss.data.analytic import make_capture, make_capture_with_test_split
 from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.data.images import resize_area, to_srgb8, write_png
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
@@ -45,8 +45,7 @@ TRAIN = {"num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "iterations
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     data = tmp_path_factory.mktemp("capture")
-    make_capture(data, views=6, lights=3, size=16)
-    make_capture(data, views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
+    make_capture_with_test_split(data, views=6, lights=3, size=16)
     torch.manual_seed(0)
     nvs = NVSModel(NVSConfig(**TINY_NVS)).save(tmp_path_factory.mktemp("nvs"))
     relight = RelightDiffusion.from_config(RelightModelConfig(**TINY_RELIGHT)).save(tmp_path_factory.mktemp("rl"))

@@ -9,7 +9,7 @@ import sys
 import pytest
 from repo_scripts import load_script
 
-from diamond_sss.data.analytic import make_capture
+from diamond_sss.data.analytic import make_capture, make_capture_with_test_split
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.errors import DataError
 
@@ -76,7 +76,6 @@ def test_noise_ceilings_are_listed_for_rendered_captures_with_the_dense_rows_dis
 
 
 def test_the_noise_ceiling_renders_a_second_test_split_once_and_only_for_a_synth_capture(tmp_path, monkeypatch):
-    from diamond_sss.data.analytic import make_capture
     from diamond_sss.data.dataset import OLATDataset
 
     data, references = tmp_path / "capture", tmp_path / "references"
@@ -147,11 +146,8 @@ def test_pipeline_settings_need_a_tag(monkeypatch, capsys):
 
 
 def test_a_finished_run_is_reused_only_with_the_same_settings(tmp_path, monkeypatch):
-    from diamond_sss.data.analytic import make_capture
-
     data = tmp_path / "capture"
-    make_capture(data, views=6, lights=3, size=16)
-    make_capture(data, views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
+    make_capture_with_test_split(data, views=6, lights=3, size=16)
     runs = tmp_path / "runs"
     monkeypatch.setattr(regimes, "short_schedule", lambda iterations, **_: {"iterations": iterations,
                                                                                "num_gaussians": 200})
@@ -170,13 +166,10 @@ def test_a_finished_run_is_reused_only_with_the_same_settings(tmp_path, monkeypa
 def test_the_grid_has_a_row_per_object_with_each_runs_render_and_psnr(tmp_path, monkeypatch):
     import imageio.v3 as iio
 
-    from diamond_sss.data.analytic import make_capture
-
     objects = []
     for name, offset in (("first", 0.0), ("second", 0.3)):
         data = tmp_path / name
-        make_capture(data, views=6, lights=3, size=16, camera_offset=offset)
-        make_capture(data, views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
+        make_capture_with_test_split(data, views=6, lights=3, size=16, camera_offset=offset)
         objects.append(data)
     monkeypatch.setattr(regimes, "short_schedule", lambda iterations, **_: {"iterations": iterations,
                                                                                "num_gaussians": 200})
@@ -221,8 +214,7 @@ def test_a_pipeline_rows_final_reconstruction_trains_on_the_rmse_and_its_baselin
 
 def test_the_sparse_form_is_the_regimes_images_as_a_capture_of_their_own_written_once(tmp_path):
     data = tmp_path / "obj"
-    make_capture(data, views=6, lights=3, size=16)
-    make_capture(data, views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
+    make_capture_with_test_split(data, views=6, lights=3, size=16)
     folder = regimes.sparse_capture(data, tmp_path / "runs", "views=2,lights=1", seed=0)
     assert folder == tmp_path / "runs" / "captures" / "obj_views2_lights1"
     sparse = OLATDataset(folder)

@@ -12,7 +12,7 @@ import torch
 
 from diamond_sss.cli.main import main
 from diamond_sss.data import OLATDataset
-from diamond_sss.data.analytic import make_capture
+from diamond_sss.data.analytic import make_capture, make_capture_with_test_split
 from diamond_sss.evaluation.evaluate import evaluate_scene
 from diamond_sss.gaussians.ply import import_ply
 from diamond_sss.runs.folder import load_scene
@@ -36,10 +36,7 @@ TINY = {
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
-    root = tmp_path_factory.mktemp("capture")
-    make_capture(root, views=6, lights=3, size=16)
-    make_capture(root, views=2, lights=2, size=16, split="test", camera_offset=0.4, light_offset=0.9)
-    return root
+    return make_capture_with_test_split(tmp_path_factory.mktemp("capture"), views=6, lights=3, size=16)
 
 
 def test_presets_follow_the_supplement():

@@ -87,3 +87,13 @@ def make_capture(root: Path, *, views: int = 6, lights: int = 4, size: int = 16,
                            "light_intensities": [[1.0, 1.0, 1.0]] * lights})
     (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": FOV_X, "frames": frames}))
     return truth
+
+
+def make_capture_with_test_split(root: Path, *, views: int = 6, lights: int = 3, size: int = 16,
+                                 test_views: int = 2, test_lights: int = 2, camera_offset: float = 0.0) -> Path:
+    """:func:`make_capture`'s ``views x lights`` training lattice and a ``test_views x test_lights`` test split of
+    novel cameras and novel lights (Fibonacci spheres turned by 0.4 and 0.9); returns ``root``."""
+    make_capture(root, views=views, lights=lights, size=size, camera_offset=camera_offset)
+    make_capture(root, views=test_views, lights=test_lights, size=size, split="test", camera_offset=0.4,
+                 light_offset=0.9)
+    return root
