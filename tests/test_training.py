@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -56,7 +57,8 @@ def test_presets_follow_the_supplement():
     assert (best.lr.opacity, best.lr.scaling, best.shading.sss_width,
             best.shading.light_init) == (0.05, 0.005, 32, -1.0)
     assert PRESETS["diamond"] == TrainConfig() and best == PRESETS["diamond"]
-    best.losses.lambda_dssim = 0.9  # a resolved config is a copy: changing it leaves the preset alone
+    with pytest.raises(dataclasses.FrozenInstanceError):  # a resolved config is frozen: passed down, not edited
+        best.losses.lambda_dssim = 0.9
     assert make_config("diamond").losses.lambda_dssim == PRESETS["diamond"].losses.lambda_dssim == 0.492
 
 

@@ -14,7 +14,7 @@ SHORT_RUN_PRELIM_PRESET = "sss3dgs"
 ``benchmarks/regimes.py`` train it: SSS-3DGS on the regime's real images, whose run is also their baseline row."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class PipelineConfig:
     """Settings of :func:`~diamond_sss.pipeline.run.run_pipeline` besides the reconstruction's configuration."""
 

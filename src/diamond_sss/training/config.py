@@ -34,7 +34,7 @@ def _key(default: Any, meaning: str, flat: str | None = None) -> Any:
     return described(default, meaning, **({"flat": flat} if flat else {}))
 
 
-@dataclass
+@dataclass(frozen=True)
 class Schedule:
     """Length of the run and its seed."""
 
@@ -46,7 +46,7 @@ class Schedule:
                                "mean (0: the last step's parameters)")
 
 
-@dataclass
+@dataclass(frozen=True)
 class LearningRates:
     """Learning rates per parameter group (Tab. 3); the Gaussian ones are named in ``GAUSSIAN_PARAMS``."""
 
@@ -79,7 +79,7 @@ class LearningRates:
                                "lr_decay_factor")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Gaussians:
     """Initialisation and size of the Gaussian set."""
 
@@ -91,7 +91,7 @@ class Gaussians:
                          "lowest opacity first)", "max_gaussians")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Densification:
     """Growing and pruning: the fields of gsplat's ``DefaultStrategy`` it sets (same names) and ``enabled``."""
 
@@ -111,7 +111,7 @@ class Densification:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "enabled"}
 
 
-@dataclass
+@dataclass(frozen=True)
 class Shading:
     """The subsurface-scattering MLP, the light and the background (a scene is built from this group)."""
 
@@ -135,7 +135,7 @@ class Shading:
                               "from the light distance) | inverse_square (relative to the scene centre)")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Losses:
     """Loss weights (Eq. A.1-A.7, Tab. 3) and where the photometric loss compares images."""
 
@@ -161,7 +161,7 @@ class Losses:
     lambda_depth: float = _key(0.3, "weight of the multi-view depth loss")
 
 
-@dataclass
+@dataclass(frozen=True)
 class MultiView:
     """Multi-view consistency sampling (Sec. D). Depth is smooth and sampled bilinearly, so the target views
     give the same constraint at a fraction of the resolution."""
@@ -186,7 +186,7 @@ class MultiView:
                                  "mv_start_fraction")
 
 
-@dataclass
+@dataclass(frozen=True)
 class RayTrace:
     """Ray-traced visibility supervision (L_raytrace): every ``every`` steps, on a random Gaussian subset."""
 
@@ -195,7 +195,7 @@ class RayTrace:
     directions: int = _key(4, "directions traced per Gaussian", "raytrace_directions")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Runtime:
     """Device, logging and checkpoints. These small kernels gain little from a second CPU thread and lose 10x
     when cores are oversubscribed, hence one thread by default."""
@@ -210,9 +210,10 @@ class Runtime:
     lpips_weights: str = _key("", "LPIPS (VGG) weights in safetensors (empty: $DIAMOND_SSS_LPIPS_WEIGHTS)")
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrainConfig:
-    """Hyperparameters of one reconstruction, one group per concern."""
+    """Hyperparameters of one reconstruction, one group per concern; frozen: resolved once
+    (:func:`~diamond_sss.training.overrides.make_config`) and passed down, never edited on the way."""
 
     schedule: Schedule = field(default_factory=Schedule)
     lr: LearningRates = field(default_factory=LearningRates)
