@@ -144,7 +144,7 @@ def test_nearest_neighbour_scales_match_brute_force_with_duplicates():
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
-def test_the_default_preset_trains_on_cuda(capture, tmp_path):
+def test_the_diamond_preset_with_every_term_trains_on_cuda(capture, tmp_path):
     """The `diamond` preset with every term on (ray-traced visibility each step, multi-view losses)."""
     cfg = make_config("diamond", overrides={**TINY, "device": "cuda", "iterations": 4, "log_every": 2,
                                            "raytrace_every": 1, "densify": True, "densify_from_iter": 1,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from dataclasses import replace
 
@@ -143,13 +144,14 @@ def test_spread_subset():
     assert len(picked) == 3 and picked == spread_subset(list(range(10)), dirs, 3, 0)
 
 
-def test_pipeline_end_to_end_and_resume(setup, tmp_path):
+def test_pipeline_end_to_end_and_resume(setup, tmp_path, capsys):
     data, nvs, relight, cache = setup
     cfg = PipelineConfig(nvs_views=2, relight_lights=1, nvs_model=str(nvs), relight_model=str(relight),
                          nvs_steps=2, relight_steps=2, min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache),
                          agreement_power=1.0)
-    result = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg,
-                          show_progress=False)
+    result = run_pipeline(data, tmp_path, regime="views=2,lights=1", overrides=TRAIN, config=cfg)
+    progress = capsys.readouterr().err  # each diffusion stage shows its progress (on a terminal, or in a log)
+    assert re.search(r"nvs: 100%\|[^|]*\| 2/2 ", progress) and re.search(r"relight: 100%\|[^|]*\| 4/4 ", progress)
     manifest = json.loads((tmp_path / "pipeline.json").read_text())
     assert list(manifest["stages"]) == ["prelim", "nvs", "relight", "final", "eval"]
     assert set(manifest["inputs"]["model_hashes"]) == {"nvs", "relight"}

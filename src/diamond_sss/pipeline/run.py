@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch
+from tqdm.auto import tqdm
 
 from diamond_sss.data.dataset import OLATDataset, directions_from
 from diamond_sss.data.images import load_rgba, resize_area
@@ -486,7 +487,7 @@ def nvs_stage(ctx: PipelineContext) -> dict:
         logger.warning("nvs: no novel view to generate: %s", why)
         return {"targets": 0, "calls": 0, "why": why}
     geometry = nvs_geometry(cfg, ctx.prelim_dir)
-    calls = 0
+    calls: list[tuple[int, int, list[int]]] = []  # (light, reference view, its targets)
     for light in sorted(set(ctx.selection.lights)):
         sources = [v for v in sorted(real_views) if bool(lattice.presence[v, light])]
         if not sources:
@@ -495,15 +496,16 @@ def nvs_stage(ctx: PipelineContext) -> dict:
         for target in targets:
             similarity = ctx.view_dirs[sources] @ ctx.view_dirs[target]
             nearest.setdefault(sources[int(torch.argmax(similarity))], []).append(target)
-        for reference, group in nearest.items():
-            generate_novel_views(source.data, ctx.out / "nvs" / f"l{light:03d}_v{reference:03d}", reference, light,
-                                 group, split=source.split, model_dir=cfg.nvs_model,
-                                 steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=ctx.seed,
-                                 cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
-                                 device=cfg.device, geometry=geometry, downscale=ctx.train_cfg.runtime.downscale,
-                                 canonical=cfg.nvs_canonical)
-            calls += 1
-    return {"targets": len(targets), "calls": calls}
+        calls += [(light, reference, group) for reference, group in nearest.items()]
+    for light, reference, group in tqdm(calls, desc="nvs", unit="call", disable=not ctx.show_progress,
+                                        dynamic_ncols=True):
+        generate_novel_views(source.data, ctx.out / "nvs" / f"l{light:03d}_v{reference:03d}", reference, light,
+                             group, split=source.split, model_dir=cfg.nvs_model,
+                             steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=ctx.seed,
+                             cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
+                             device=cfg.device, geometry=geometry, downscale=ctx.train_cfg.runtime.downscale,
+                             canonical=cfg.nvs_canonical)
+    return {"targets": len(targets), "calls": len(calls)}
 
 
 def nvs_images(ctx: PipelineContext) -> list[GeneratedImage]:
@@ -540,7 +542,8 @@ def relight_stage(ctx: PipelineContext, sources_json: Path) -> dict:
     for obs in dataset.observations:
         lights_of_view.setdefault(obs.view, []).append(obs.light)
     results = []
-    for view, lights in sorted(lights_of_view.items()):
+    for view, lights in tqdm(sorted(lights_of_view.items()), desc="relight", unit="view",
+                             disable=not ctx.show_progress, dynamic_ncols=True):
         missing = [light for light in range(ctx.lattice.num_lights) if light not in lights]
         targets = spread_subset(missing, ctx.light_dirs, cfg.relight_lights, ctx.seed)
         if targets:
