@@ -45,7 +45,7 @@ def run(setup, out, targets=(1, 3), **kwargs):
         targets,
         model_dir=model_dir,
         steps=2,
-        cache_dir=cache,
+        cache_dir=kwargs.pop("cache_dir", cache),
         **kwargs,
     )
 
@@ -73,6 +73,11 @@ def test_outputs_manifest_and_cache(setup, tmp_path, monkeypatch):
     # another seed is another cache entry and other images
     run(setup, tmp_path / "c", seed=1)
     assert (tmp_path.joinpath("a", *image)).read_bytes() != (tmp_path.joinpath("c", *image)).read_bytes()
+    # a model loaded once by the caller (the pipeline's stage) makes the same images as one loaded per call
+    loaded = pipeline.NVSModel.load(setup[1])
+    monkeypatch.setattr(pipeline.NVSModel, "load", no_model)
+    run(setup, tmp_path / "d", cache_dir=tmp_path / "fresh_cache", model=loaded)
+    assert (tmp_path.joinpath("a", *image)).read_bytes() == (tmp_path.joinpath("d", *image)).read_bytes()
 
 
 def test_json_poses_through_the_command(setup, tmp_path):

@@ -475,7 +475,8 @@ def nvs_stage(ctx: PipelineContext) -> dict:
     """Novel views into ``<out>/nvs``: under each real light, the (spread) missing views generated from the nearest
     real view, at the model's resolution or the training size (the real images over ``runtime.downscale``) when that
     is smaller: the final reconstruction compares them with its render area-downsampled to their size."""
-    from diamond_sss.diffusion.nvs.pipeline import generate_novel_views
+    from diamond_sss.diffusion.nvs.model import NVSModel
+    from diamond_sss.diffusion.nvs.pipeline import default_model_dir, generate_novel_views
 
     cfg, lattice, source = ctx.cfg, ctx.lattice, ctx.lattice_source
     real_views = set(ctx.selection.views)
@@ -497,6 +498,7 @@ def nvs_stage(ctx: PipelineContext) -> dict:
             similarity = ctx.view_dirs[sources] @ ctx.view_dirs[target]
             nearest.setdefault(sources[int(torch.argmax(similarity))], []).append(target)
         calls += [(light, reference, group) for reference, group in nearest.items()]
+    model = NVSModel.load(cfg.nvs_model or default_model_dir()).to(cfg.device)  # once for every call
     for light, reference, group in tqdm(calls, desc="nvs", unit="call", disable=not ctx.show_progress,
                                         dynamic_ncols=True):
         generate_novel_views(source.data, ctx.out / "nvs" / f"l{light:03d}_v{reference:03d}", reference, light,
@@ -504,7 +506,7 @@ def nvs_stage(ctx: PipelineContext) -> dict:
                              steps=cfg.nvs_steps, guidance_scale=cfg.nvs_guidance, seed=ctx.seed,
                              cache_dir=cfg.cache_dir and Path(cfg.cache_dir) / "nvs",
                              device=cfg.device, geometry=geometry, downscale=ctx.train_cfg.runtime.downscale,
-                             canonical=cfg.nvs_canonical)
+                             canonical=cfg.nvs_canonical, model=model)
     return {"targets": len(targets), "calls": len(calls)}
 
 

@@ -280,6 +280,7 @@ def generate_novel_views(
     geometry: GeometrySource | None = None,
     downscale: float = 1.0,
     canonical: bool = False,
+    model: NVSModel | None = None,
 ) -> Path:
     """Generate the ``targets`` (lattice view indices or cameras, see :func:`parse_targets`) of ``data`` under
     ``light`` from reference ``view``; returns the manifest (:mod:`~diamond_sss.diffusion.common.manifest`).
@@ -290,7 +291,8 @@ def generate_novel_views(
     divided by ``downscale`` (``OLATDataset``'s), cameras given as :class:`TargetCameras` at their own ``size``.
     Deterministic for a seed, the same initial noise on every device (drawn on the CPU); a second call with the
     same model and inputs is served from the cache. ``canonical``: the cameras (and depth) are given to the prior in its own rig's frame
-    (:mod:`~diamond_sss.diffusion.nvs.canonical`; from ``data``'s cameras), not in the capture's.
+    (:mod:`~diamond_sss.diffusion.nvs.canonical`; from ``data``'s cameras), not in the capture's. ``model``: the model
+    of ``model_dir`` already loaded on ``device`` (loaded here when not given; pass it when generating several times).
     """
     dataset = OLATDataset(data, split, downscale=downscale)
     if not 0 <= view < dataset.num_views:
@@ -308,7 +310,7 @@ def generate_novel_views(
                         "reads the command line's form)")
     cameras = targets if isinstance(targets, TargetCameras) else TargetCameras.from_views(dataset, targets)
     model_dir = Path(model_dir) if model_dir is not None else default_model_dir()
-    config = NVSModel.read_config(model_dir)
+    config = model.config if model is not None else NVSModel.read_config(model_dir)
     if config.warp_hint and geometry is None:
         raise GeometryError(
             f"the novel-view model in {model_dir} uses the warp hint and needs the reference's metric depth: "
@@ -340,10 +342,10 @@ def generate_novel_views(
     cache = OutputCache(cache_dir if cache_dir is not None else default_cache_dir("nvs"))
 
     def write(folder: Path) -> None:
-        model = NVSModel.load(model_dir).to(device)
-        size = model.config.warp_source_size if model.config.warp_hint else model.config.image_size
+        loaded = model if model is not None else NVSModel.load(model_dir).to(device)
+        size = config.warp_source_size if config.warp_hint else config.image_size
         reference, ref_K = load_rgba_views(dataset, [view], light, size)
-        depth = reference_depth(dataset, view, light, geometry, size) if model.config.warp_hint else None
+        depth = reference_depth(dataset, view, light, geometry, size) if config.warp_hint else None
         K = scale_intrinsics(cameras.K, size / cameras.size)
         reference_w2c, target_w2c = dataset.viewmats[view][None], cameras.w2c[None]
         if frame is not None:  # the prior's own rig (diffusion/nvs/canonical.py): metric depth scales with it
@@ -358,7 +360,7 @@ def generate_novel_views(
             reference_depth=None if depth is None else depth.to(device),
         )
         generator = torch.Generator().manual_seed(seed)  # on the CPU: the same noise on every device
-        output = NovelViewPipeline(model)(batch, steps, guidance_scale, generator, size=output_size)
+        output = NovelViewPipeline(loaded)(batch, steps, guidance_scale, generator, size=output_size)
         for name, rgb, alpha in zip(cameras.names, output.rgb, output.alpha):
             write_png(folder / f"{name}.png", to_srgb8(rgb, alpha))
             write_png(folder / f"{name}_mask.png", (alpha[..., 0].numpy() * 255 + 0.5).astype("uint8"))
