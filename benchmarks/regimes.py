@@ -355,10 +355,10 @@ def main() -> None:
             else:
                 final, metrics = run_method(method, data, runs, regime, args.iterations, share, power,
                                             pipeline_set, args.tag, args.seed)
-            finals[data.name, f"{regime} ({form})" if form == "sparse" else regime, name] = final
             rows.append({"object": data.name, "form": form, "regime": regime, "method": name, "run": str(runs / name),
                          "minutes": run_minutes(runs / name), "stages": stage_seconds(runs / name),
                          **{k: metrics.get(k) for k in (*METRICS, "real_images", "synthetic_images", "real_share")}})
+            finals[grid_key(rows[-1])] = final
             print(json.dumps(rows[-1]), flush=True)
     args.results.mkdir(parents=True, exist_ok=True)
     (args.results / "regimes.json").write_text(json.dumps({"iterations": args.iterations, "note": args.note,
@@ -371,11 +371,17 @@ def main() -> None:
     print(text)
 
 
+def grid_key(row: dict) -> tuple[str, str, str]:
+    """A row's (object, regime, method) in the grid; the sparse form's regime is marked ``(sparse)``."""
+    form = row.get("form", "lattice")
+    return row["object"], f"{row['regime']} ({form})" if form == "sparse" else row["regime"], row["method"]
+
+
 def save_regimes_grid(path: Path, objects: list[Path], finals: dict[tuple[str, str, str], Path],
                       rows: list[dict]) -> Path:
-    """One row per object: its test image 0 (view 0, light 0), then each reconstruction's render of it, labelled
-    with the regime, the method and its test PSNR (dB, the whole split)."""
-    psnr = {(r["object"], r["regime"], r["method"]): r["psnr"] for r in rows}
+    """One row per object: its test image 0 (view 0, light 0), then each reconstruction's render of it (``finals``,
+    keyed by :func:`grid_key`), labelled with the regime, the method and its test PSNR (dB, the whole split)."""
+    psnr = {grid_key(r): r["psnr"] for r in rows}
     grid, labels = [], []
     for data in objects:
         test = OLATDataset(data, "test")

@@ -176,17 +176,20 @@ def test_the_grid_has_a_row_per_object_with_each_runs_render_and_psnr(tmp_path, 
     finals, rows = {}, []
     for data in objects:
         run, metrics = regimes.run_method("sss3dgs", data, tmp_path / "runs" / data.name, regimes.NINE, 2)
-        finals[data.name, regimes.NINE, "sss3dgs"] = run
         rows.append({"object": data.name, "regime": regimes.NINE, "method": "sss3dgs", "psnr": metrics["psnr"]})
+        finals[regimes.grid_key(rows[-1])] = run
+    rows.append({**rows[-1], "form": "sparse", "psnr": 1.0})  # the same run as the sparse form's row: its own cell
+    finals[regimes.grid_key(rows[-1])] = run
     drawn = {}
     real = regimes.save_image_grid
     monkeypatch.setattr(regimes, "save_image_grid", lambda path, grid, **labels: drawn.update(grid=grid, **labels)
                         or real(path, grid, **labels))
     path = regimes.save_regimes_grid(tmp_path / "grid.png", objects, finals, rows)
     assert drawn["row_labels"] == ["first", "second"]
-    assert [len(row) for row in drawn["grid"]] == [2, 2]
-    assert drawn["cell_labels"][1] == ["ground truth", f"9: sss3dgs {rows[1]['psnr']:.2f}"]
-    assert iio.imread(path).shape[0] > iio.imread(path).shape[1] / 2  # two rows of two cells
+    assert [len(row) for row in drawn["grid"]] == [2, 3]
+    assert drawn["cell_labels"][1] == ["ground truth", f"9: sss3dgs {rows[1]['psnr']:.2f}",
+                                       f"{regimes.NINE} (sparse): sss3dgs 1.00"]
+    assert iio.imread(path).shape[0] > iio.imread(path).shape[1] / 3  # two rows of up to three cells
 
 
 def test_a_pipeline_rows_final_reconstruction_trains_on_the_rmse_and_its_baseline_on_l1(tmp_path, monkeypatch):

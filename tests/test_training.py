@@ -475,3 +475,23 @@ def test_the_sh_visibility_learns_from_the_photometric_loss_only_when_asked(capt
         sh.grad = None
         trainer.raytrace_term(scene, light.position[None], step=0).backward()
         assert sh.grad.abs().sum() > 0  # the ray-traced term trains it either way
+
+
+def test_a_run_is_not_resumed_on_other_images(capture, tmp_path):
+    """A finished run folder resumed with another capture would be reported as the model of images it never saw: it
+    is refused, naming both, and what the folder records is left as it was."""
+    from diamond_sss.training.run import train_run
+
+    config = make_config("sss3dgs", overrides={**TINY, "iterations": 2})
+    run = tmp_path / "run"
+    train_run(capture, run, config, regime="views=2,lights=1", resume=True, show_progress=False)
+    recorded = (run / "data.json").read_bytes(), (run / "model.safetensors").read_bytes()
+    other = make_capture_with_test_split(tmp_path / "other", views=6, lights=3, size=16, camera_offset=0.3)
+    with pytest.raises(ValueError, match=r"run was trained on other images \(.*capture.*, regime 'views=2,lights=1'\) "
+                                         r"than .*other with regime 'views=2,lights=1'"):
+        train_run(other, run, config, regime="views=2,lights=1", resume=True, show_progress=False)
+    with pytest.raises(ValueError, match=r"trained on other images .* with regime 'views=3,lights=1'"):
+        train_run(capture, run, config, regime="views=3,lights=1", resume=True, show_progress=False)
+    assert ((run / "data.json").read_bytes(), (run / "model.safetensors").read_bytes()) == recorded
+    again = train_run(capture, run, config, regime="views=2,lights=1", resume=True, show_progress=False)
+    assert again.steps == 2  # the same images: the finished run is reused

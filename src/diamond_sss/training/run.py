@@ -10,6 +10,7 @@ from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.regimes import select_regime
 from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.overrides import make_config
+from diamond_sss.training.run_folder import check_same_images
 from diamond_sss.training.trainer import ImageSource, StepCallback, Trainer, TrainResult
 from diamond_sss.utils.io import atomic_write_json
 
@@ -23,15 +24,19 @@ def train_run(data: Path, out: Path, config: TrainConfig, *, split: str = "train
     The run folder records ``config.json`` (``config``), ``regime.json`` (the chosen views, lights and
     images), ``data.json`` (where the data came from, and the digest of the images it trained on:
     :meth:`~diamond_sss.data.dataset.OLATDataset.content_hash`) and, when done, ``model.safetensors``. ``on_step`` is
-    called after every step (the trainer's :data:`~diamond_sss.training.trainer.StepCallback`).
+    called after every step (the trainer's :data:`~diamond_sss.training.trainer.StepCallback`). Resuming a folder that
+    trained on other images is refused (:func:`~diamond_sss.training.run_folder.check_same_images`).
     """
     dataset = OLATDataset(data, split, downscale=config.runtime.downscale)
     selection = select_regime(dataset, regime, config.schedule.seed)
+    digest = dataset.content_hash(selection.observations)
     out = Path(out)
+    if resume:
+        check_same_images(out, data, regime, digest)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "regime.json", selection.to_json())
     atomic_write_json(out / "data.json", {"data": str(Path(data).resolve()), "split": split, "regime": regime,
-                                          "content_sha256": dataset.content_hash(selection.observations)})
+                                          "content_sha256": digest})
     sources = [ImageSource(dataset.subset(selection.observations), 1.0), *extra_sources]
     trainer = Trainer(config, sources, out, show_progress=show_progress)
     return trainer.run(resume=resume, on_step=on_step)

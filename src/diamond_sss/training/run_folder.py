@@ -46,6 +46,22 @@ def check_resumable(run_dir: Path, cfg: TrainConfig) -> None:
                          "or train into another --out")
 
 
+def check_same_images(run_dir: Path, data: Path, regime: str, content_sha256: str) -> None:
+    """Refuse to resume ``run_dir`` on other images than those it records in ``data.json`` (the digest of the images it
+    trained on; for runs without one, the capture folder and regime), naming both: a finished run would otherwise be
+    reported as the model of images it never saw."""
+    path = Path(run_dir) / "data.json"
+    if not path.is_file():
+        return
+    recorded = read_json(path)
+    same = (recorded.get("content_sha256") == content_sha256 if recorded.get("content_sha256")
+            else (recorded.get("data"), recorded.get("regime")) == (str(Path(data).resolve()), regime))
+    if not same:
+        raise ValueError(f"{run_dir} was trained on other images ({recorded.get('data')}, regime "
+                         f"{recorded.get('regime')!r}) than {Path(data).resolve()} with regime {regime!r}; resume it "
+                         "with the same images or train into another --out")
+
+
 def finished_summary(run_dir: Path, iterations: int) -> dict | None:
     """What a run recorded (``train_summary.json``) when it finished ``iterations`` steps and wrote its model;
     ``None`` otherwise (resuming it then continues from its newest checkpoint)."""
