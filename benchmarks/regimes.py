@@ -377,6 +377,14 @@ def grid_key(row: dict) -> tuple[str, str, str]:
     return row["object"], f"{row['regime']} ({form})" if form == "sparse" else row["regime"], row["method"]
 
 
+def short_regime(regime: str) -> str:
+    """A grid label's regime: ``9`` / ``30`` for the paper's counts (as views x lights or images), then the form when
+    sparse (``images=9 (sparse)`` -> ``9 sparse``); other regimes as they are."""
+    base, _, form = regime.partition(" (")
+    count = "9" if base in NINE_IMAGES else "30" if base in THIRTY_IMAGES else base
+    return f"{count} {form.rstrip(')')}".strip()
+
+
 def save_regimes_grid(path: Path, objects: list[Path], finals: dict[tuple[str, str, str], Path],
                       rows: list[dict]) -> Path:
     """One row per object: its test image 0 (view 0, light 0), then each reconstruction's render of it (``finals``,
@@ -388,8 +396,7 @@ def save_regimes_grid(path: Path, objects: list[Path], finals: dict[tuple[str, s
         keys = [key for key in finals if key[0] == data.name]
         grid.append([to_display(test.load(0).rgb)] + [
             to_display(render_observation(load_scene(finals[key])[0], test, 0, "cpu").radiance[0]) for key in keys])
-        labels.append(["ground truth", *[f"{'9' if k[1] == NINE else '30' if k[1] == THIRTY else k[1]}: {k[2]} "
-                                         f"{psnr[k]:.2f}" for k in keys]])
+        labels.append(["ground truth", *[f"{short_regime(k[1])}: {k[2]} {psnr[k]:.2f}" for k in keys]])
     return save_image_grid(path, grid, row_labels=[data.name for data in objects], cell_labels=labels,
                            title="test view 0 under test light 0; test PSNR of the whole split")
 
