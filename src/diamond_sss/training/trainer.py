@@ -60,7 +60,7 @@ from diamond_sss.training.objective import TargetBatch, image_objective
 from diamond_sss.training.run_folder import check_resumable, finished_summary
 from diamond_sss.training.schedules import exponential_lr, linear_warmup, step_decay
 from diamond_sss.utils import rng
-from diamond_sss.utils.device import resolve_device, to_device
+from diamond_sss.utils.device import cpu_threads, resolve_device, to_device
 from diamond_sss.utils.io import atomic_write_json
 
 logger = logging.getLogger(__name__)
@@ -196,8 +196,6 @@ class Trainer:
         self.run_dir = None if run_dir is None else Path(run_dir)
         self.show_progress = show_progress
         self.device = resolve_device(cfg.runtime.device)
-        if self.device.type == "cpu" and cfg.runtime.cpu_threads > 0:
-            torch.set_num_threads(cfg.runtime.cpu_threads)
         self.index = [(s, i) for s, source in enumerate(sources) for i in range(len(source.dataset))]
         self.bounds = self.lattice.bounds
         self.union = unify_lattices([source.dataset for source in sources])
@@ -519,8 +517,13 @@ class Trainer:
 
         ``scene``: start from this scene instead of :meth:`build_scene` (trained in place). ``on_step`` is
         called after every step (see :data:`StepCallback`); when it returns ``True`` the run ends there.
-        Without a ``run_dir`` nothing is written (no config, logs, checkpoints or model).
+        Without a ``run_dir`` nothing is written (no config, logs, checkpoints or model). On the CPU it trains on
+        ``runtime.cpu_threads`` threads, restored when it returns.
         """
+        with cpu_threads(self.cfg.runtime.cpu_threads if self.device.type == "cpu" else 0):
+            return self._run(resume, scene, on_step)
+
+    def _run(self, resume: bool, scene: RelightableScene | None, on_step: StepCallback | None) -> TrainResult:
         cfg = self.cfg
         if resume and (scene is not None or self.run_dir is None):
             raise ValueError("Trainer.run: resuming needs a run_dir and no starting scene")
