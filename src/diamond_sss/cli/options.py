@@ -54,8 +54,7 @@ PresetArg = Annotated[str, tyro.conf.arg(help=(
 
 
 def schedule_overrides(preset: str, iterations: int | None, *, keep_schedule: bool = False, short_run: bool = False,
-                       dense: bool = False, pipeline_final: bool = False, real_images_only: bool = False,
-                       given: Mapping[str, Any] | None = None,
+                       dense: bool = False, pipeline_final: bool = False, given: Mapping[str, Any] | None = None,
                        fixed: Collection[str] = ()) -> tuple[str, dict[str, Any], str | None]:
     """The preset that ``preset`` resolves to, the config overrides (dotted keys) of ``--iterations``,
     ``--keep-schedule`` and ``--short-run``, and a line saying what they changed (``None`` when nothing was asked).
@@ -64,15 +63,13 @@ def schedule_overrides(preset: str, iterations: int | None, *, keep_schedule: bo
     with the short-run settings, as ``short_run`` gives them to a named preset:
     :func:`diamond_sss.training.overrides.short_run_overrides` for ``iterations`` steps (default
     :data:`~diamond_sss.training.config.SHORT_SCHEDULE`'s 1000; a ``dense`` capture's or a ``pipeline_final``
-    reconstruction's settings with them; a sparse capture's reconstruction from its ``real_images_only``, without the
-    multi-view terms: :data:`~diamond_sss.training.config.SPARSE_REAL_ONLY`), less the ``given`` keys (the checked
-    values of ``--config``). Otherwise the
+    reconstruction's settings with them), less the ``given`` keys (the checked values of ``--config``). Otherwise the
     step-valued keys of ``preset`` (+ ``given``) scaled to ``iterations``
     (:func:`~diamond_sss.training.overrides.scaled_run_schedule`; the ``fixed`` keys, those of ``--set``, keep their
     value), or with ``keep_schedule`` only the step count changed.
     """
-    from diamond_sss.training.config import AUTO_PRESET, SHORT_SCHEDULE, SPARSE_REAL_ONLY
-    from diamond_sss.training.overrides import checked_values, scaled_run_schedule, short_run_overrides
+    from diamond_sss.training.config import AUTO_PRESET, SHORT_SCHEDULE
+    from diamond_sss.training.overrides import scaled_run_schedule, short_run_overrides
 
     if iterations is not None and iterations <= 0:
         raise ValueError(f"--iterations must be a positive number of training steps, got {iterations}")
@@ -85,9 +82,6 @@ def schedule_overrides(preset: str, iterations: int | None, *, keep_schedule: bo
     if auto or short_run:
         steps = SHORT_SCHEDULE["iterations"] if iterations is None else iterations
         settings = short_run_overrides(steps, dense=dense, pipeline_final=pipeline_final, given=set(given or {}))
-        if auto and real_images_only and not dense and not pipeline_final:
-            settings.update({key: value for key, value in checked_values(SPARSE_REAL_ONLY).items()
-                             if key not in (given or {})})
         listed = ", ".join(f"{key}={value}" for key, value in settings.items() if key != "schedule.iterations")
         said = (f"{'preset auto = diamond with the ' if auto else ''}short-run settings for {steps} steps "
                 f"(training.config.short_schedule): {listed}")

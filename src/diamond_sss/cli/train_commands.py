@@ -30,10 +30,9 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
             iterations / their iterations.
         keep_schedule: with --iterations and a named --preset, keep the preset's step-valued keys as they are.
         short_run: kept for old scripts, the default preset auto trains with these settings: the settings measured
-            for runs of 1,000 to 10,000 steps on 64-px captures (training.config.short_schedule; a dense capture's
-            when the regime selects 100 images or more, DENSE_MIN_IMAGES; under auto a sparse capture trains without
-            the multi-view terms, SPARSE_REAL_ONLY), scaled to --iterations (default 1000); with a named --preset,
-            that preset with them; --config's keys and --set's come after them.
+            for runs of 1,000 to 10,000 steps on 64-px captures (training.config.short_schedule; with --regime all
+            a dense capture's), scaled to --iterations (default 1000); with a named --preset, that preset with
+            them; --config's keys and --set's come after them.
         config: JSON file of config keys (e.g. the best configuration written by `diamond-sss tune`).
         seed: seed of the regime selection, initialisation and every random draw (schedule.seed; default:
             --config's, else the preset's).
@@ -41,19 +40,14 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
         device: auto | cpu | cuda (runtime.device; default: --config's, else the preset's).
         quiet: no progress bar.
     """
-    from diamond_sss.data.dataset import OLATDataset
-    from diamond_sss.data.regimes import select_regime
-    from diamond_sss.training.config import DENSE_MIN_IMAGES
     from diamond_sss.training.overrides import checked_values, config_file_values, make_config, parse_sets
     from diamond_sss.training.run import train_run
 
     console = Console(soft_wrap=True)
     from_file = config_file_values(config) if config is not None else {}
     sets = checked_values(parse_sets(set_))
-    images = len(select_regime(OLATDataset(data, split), regime, seed or 0).observations)
     preset, schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
-                                                dense=images >= DENSE_MIN_IMAGES, real_images_only=True,
-                                                given=from_file, fixed=sets)
+                                                dense=regime == "all", given=from_file, fixed=sets)
     flags = checked_values(given_overrides(seed=seed, device=device))
     resolved = make_config(preset, overrides={**from_file, **schedule, **flags, **sets})  # before anything is written
     if said:
@@ -69,8 +63,7 @@ def config(preset: PresetArg = "auto", iterations: int | None = None, regime: st
     Args:
         iterations: training steps, as `train --iterations` (default: 1000 under --preset auto, the preset's
             otherwise).
-        regime: capture regime, as `train --regime` (under --preset auto, all is shown with a dense capture's
-            settings; `train` takes them when the regime selects 100 images or more, else a sparse capture's).
+        regime: capture regime, as `train --regime` (under --preset auto, all takes a dense capture's settings).
         json: print a JSON object of key -> value instead of a table.
     """
     from diamond_sss.training.overrides import describe_config

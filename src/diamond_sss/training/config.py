@@ -352,19 +352,6 @@ rows gain 0.7-0.8 dB but the full pipeline loses 0.55-0.66 dB: bunny, torus); a 
 keeps Eq. A.1's L1, as the SSS-3DGS baseline has it, and the pipeline's final reconstruction takes the RMSE
 (:data:`PIPELINE_FINAL_RUN`) (benchmarks/RESULTS.md, issues 17 and 18)."""
 
-DENSE_MIN_IMAGES = 100
-"""Under the command line's preset auto, a regime that selects at least this many images trains with a dense
-capture's settings (:data:`DENSE_SHORT_RUN`); fewer is a sparse capture, whatever its regime is named (a user's
-9-image capture is regime ``all``). The measured captures: sparse 9, 30 and 52 images, dense 960."""
-
-SPARSE_REAL_ONLY: dict[str, Any] = {"lambda_sil": 0.0, "lambda_depth": 0.0}
-"""Under the command line's preset auto, a sparse capture (fewer than :data:`DENSE_MIN_IMAGES` images) reconstructed
-from its real images alone (``train``; not the pipeline's final reconstruction, which has its generated views) trains
-without the multi-view terms. Measured on held-out objects of another rig given as only their 9 images, 1000 steps,
-the terms against without them (DIAMOND-SSS issue 58; benchmarks/RESULTS.md): knot/jade -2.07 dB, blob/wax -0.51
-(decided on these two), knot/skin -2.03 and bust/soap +0.34 (reported); on the demo object +1.36.
-In the pipeline's final reconstruction they stay: +0.13 / +0.52 dB on knot/jade and blob/wax."""
-
 PIPELINE_FINAL_RUN: dict[str, Any] = {"photometric_error": "rmse"}
 """The DIAMOND-SSS pipeline's final reconstruction over a sparse capture (its real images and a few hundred generated
 ones) takes each image's RMSE as its photometric error, as a dense capture does (:data:`DENSE_SHORT_RUN`). Measured
