@@ -495,6 +495,12 @@ def test_a_run_is_not_resumed_on_other_images(capture, tmp_path):
     assert ((run / "data.json").read_bytes(), (run / "model.safetensors").read_bytes()) == recorded
     again = train_run(capture, run, config, regime="views=2,lights=1", resume=True, show_progress=False)
     assert again.steps == 2  # the same images: the finished run is reused
+    for damaged, message in (("{not json", r"data.json: damaged or invalid JSON"),
+                             ("[1, 2]", r"data.json: expected a JSON object with the keys data, regime")):
+        (run / "data.json").write_text(damaged)
+        with pytest.raises(ValueError, match=message):
+            train_run(capture, run, config, regime="views=2,lights=1", resume=True, show_progress=False)
+        assert (run / "data.json").read_text() == damaged  # named, and left as it was
 
 
 def test_a_run_trains_on_its_cpu_threads_and_gives_the_process_its_own_back(capture, tmp_path):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from diamond_sss.errors import DataError
 from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.overrides import load_run_config
 from diamond_sss.utils.io import move_aside, read_json, sha256_json
@@ -54,6 +55,8 @@ def check_same_images(run_dir: Path, data: Path, regime: str, content_sha256: st
     if not path.is_file():
         return
     recorded = read_json(path)
+    if not isinstance(recorded, dict):
+        raise DataError(f"{path}: expected a JSON object with the keys data, regime and content_sha256")
     same = (recorded.get("content_sha256") == content_sha256 if recorded.get("content_sha256")
             else (recorded.get("data"), recorded.get("regime")) == (str(Path(data).resolve()), regime))
     if not same:
