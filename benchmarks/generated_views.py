@@ -1,8 +1,8 @@
 """How good are a pipeline run's generated images? Each against the truth, beside the preliminary reconstruction.
 
-For every image the ``nvs`` and ``relight`` stages of a finished :func:`~diamond_sss.pipeline.run.run_pipeline`
-run generated (view ``v``, light ``l`` of the capture's lattice), the synthetic capture's own image of ``(v, l)`` is
-the truth; the preliminary reconstruction (the real images only) is rendered at ``(v, l)`` beside it. PSNR, SSIM
+For every image the ``nvs`` and ``relight`` stages (or the ``repair`` stage) of a finished
+:func:`~diamond_sss.pipeline.run.run_pipeline` run generated (view ``v``, light ``l`` of the capture's lattice),
+the synthetic capture's own image of ``(v, l)`` is the truth; the preliminary reconstruction (the real images only) is rendered at ``(v, l)`` beside it. PSNR, SSIM
 (sRGB, full frame) and mask IoU per stage; ``wins`` is the share of images where the generated one has the higher
 PSNR. A generated image adds colour the final reconstruction could not get from the preliminary one only where it
 beats that render; where it does not, it can still add its silhouette (the visual hull, the mask loss).
@@ -24,9 +24,9 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, GeneratedImage, read_image_manifest
 from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.metrics import image_metrics
-from diamond_sss.pipeline.agreement import load_generated, render_lattice_image
+from diamond_sss.pipeline.agreement import load_generated
 from diamond_sss.pipeline.capture import check_on_lattice
-from diamond_sss.runs.folder import load_scene
+from diamond_sss.runs.folder import load_scene, render_lattice_image
 
 RESULTS = Path(__file__).resolve().parent / "results" / "generated_views"
 METRICS = ("psnr", "ssim", "mask_iou")
@@ -58,6 +58,8 @@ def stage_images(run: Path) -> dict[str, list[GeneratedImage]]:
                       for item in read_image_manifest(path)]}
     relit = run / "relight" / "out" / MANIFEST_NAME
     stages["relight"] = read_image_manifest(relit) if relit.is_file() else []
+    repaired = run / "repair" / MANIFEST_NAME
+    stages["repair"] = read_image_manifest(repaired) if repaired.is_file() else []
     return {stage: items for stage, items in stages.items() if items}
 
 
@@ -80,7 +82,7 @@ def score_run(run: Path) -> tuple[list[dict], list[list]]:
             rows.append({"run": str(run), "stage": stage, "view": item.view, "light": item.light,
                          **{f"generated_{k}": getattr(generated, k) for k in METRICS},
                          **{f"prelim_{k}": getattr(rendered, k) for k in METRICS}})
-            if stage == "nvs" and len(grid) < GRID_IMAGES:
+            if stage in ("nvs", "repair") and len(grid) < GRID_IMAGES:
                 grid.append([to_display(truth.rgb), to_display(rgb), to_display(prelim_rgb)])
     return rows, grid
 
@@ -130,7 +132,7 @@ def main() -> None:
     (args.results / f"{args.tag}.md").write_text(text + "\n")
     save_image_grid(args.results / f"{args.tag}_grid.png", grid, row_labels=labels,
                     col_labels=["truth", "generated", "preliminary render"],
-                    title="novel views: generated vs prelim")
+                    title="novel views (nvs or repair): generated vs prelim")
     print(text)
 
 

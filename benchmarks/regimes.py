@@ -3,7 +3,8 @@
 Regimes: `views=3,lights=3` (9 images, the paper's 3% x 3%) and `views=5,lights=6` (30 images, 5% x 5%), and
 the dense reference (`dense`: the `diamond` preset on every image). Rows per object, regime and stage:
 `sss3dgs` (real images only); `+mv` (the `diamond` preset: + multi-view losses); `+relight` (+ relighting
-diffusion); `full` (+ novel-view diffusion: the full pipeline), plus the mean over objects. The pipeline rows
+diffusion); `full` (+ novel-view diffusion: the full pipeline); `repair` (the pipeline with `--augment repair`, issue
+59: the preliminary reconstruction's renders at the same targets, repaired), plus the mean over objects. The pipeline rows
 reuse the `sss3dgs` run as their preliminary reconstruction and run once per --real-shares value (the pipeline's
 `min_real_share`; rows and folders of a value other than the default `auto`, n / (n + 9) for n real images, are
 named e.g. `full_share0`) and per
@@ -64,9 +65,12 @@ REGIMES = (NINE, THIRTY)
 NINE_IMAGES, THIRTY_IMAGES = (NINE, "images=9"), (THIRTY, "images=30")
 """The regimes each target applies to (counts of views x lights, or of images on an incomplete lattice)."""
 FORMS = ("lattice", "sparse")
-METHODS = ("sss3dgs", "+mv", "+relight", "full")
+METHODS = ("sss3dgs", "+mv", "+relight", "full", "repair")
 LABELS = {"sss3dgs": "sss3dgs (real images only)", "+mv": "+ multi-view losses", "+relight": "+ relighting",
-          "full": "+ novel views (full pipeline)", "dense": "dense reconstruction (all images)"}
+          "full": "+ novel views (full pipeline)", "repair": "render repair instead of the two diffusion stages",
+          "dense": "dense reconstruction (all images)"}
+PIPELINE_METHODS = ("+relight", "full", "repair")
+"""The methods run by the pipeline (a preliminary reconstruction, generated images, a final one)."""
 DEFAULT_OBJECTS = ("src/diamond_sss/assets/data/demo", "torus:soap", "blob:marble")
 METRICS = ("psnr", "ssim", "mask_iou")
 DEFAULT_SHARE = PipelineConfig().min_real_share
@@ -152,7 +156,7 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
                pipeline_set: dict[str, str] | None = None, tag: str = "", seed: int = 0) -> tuple[Path, dict]:
     """Train and evaluate one method in ``runs/<variant_name>``; returns its final run folder and test metrics
     (+ image counts). The pipeline methods reuse ``runs/sss3dgs`` as their preliminary reconstruction."""
-    overrides = {**short_schedule(iterations, dense=method == "dense", pipeline_final=method in ("+relight", "full")),
+    overrides = {**short_schedule(iterations, dense=method == "dense", pipeline_final=method in PIPELINE_METHODS),
                  "seed": seed}
     if method in ("sss3dgs", "+mv", "dense"):
         run = runs / method
@@ -170,7 +174,7 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     pipeline_keys = {f.name: f.type for f in fields(PipelineConfig)}
     given = {key: pipeline_setting(key, pipeline_keys[key], value) for key, value in settings.items()
              if key in pipeline_keys}
-    given.setdefault("augment", ("relight",) if method == "+relight" else ("nvs", "relight"))
+    given.setdefault("augment", {"+relight": ("relight",), "repair": ("repair",)}.get(method, ("nvs", "relight")))
     config = checked_config(PipelineConfig(prelim_run=str(prelim), min_real_share=real_share,
                                            agreement_power=agreement_power, **given))  # before any training
     if not (prelim / "model.safetensors").is_file():
@@ -244,7 +248,7 @@ def target_lines(rows: list[dict]) -> list[str]:
     lattice form, issue 18's) ``full`` within 2 dB of ``dense``."""
     score = {(r["object"], r.get("form", "lattice"), r["regime"], r["method"]): r for r in rows}
     lines = []
-    for full_name in dict.fromkeys(r["method"] for r in rows if r["method"].startswith("full")):
+    for full_name in dict.fromkeys(r["method"] for r in rows if r["method"].startswith(("full", "repair"))):
         for name, form, regime in dict.fromkeys((r["object"], r.get("form", "lattice"), r["regime"]) for r in rows):
             full, base = score.get((name, form, regime, full_name)), score.get((name, form, regime, "sss3dgs"))
             where = f"{name}, {form} `{regime}`"
@@ -337,7 +341,7 @@ def main() -> None:
         pipeline_variants = [(share, power) for share in args.real_shares for power in args.agreement_powers]
         jobs = [(form, regime, method, share, power) for form in args.forms for regime in args.regimes
                 for method in args.methods
-                for share, power in (pipeline_variants if method in ("+relight", "full")
+                for share, power in (pipeline_variants if method in PIPELINE_METHODS
                                      else [(DEFAULT_SHARE, DEFAULT_POWER)])]
         jobs += [] if args.no_dense else [("lattice", "all", "dense", DEFAULT_SHARE, DEFAULT_POWER)]
         for form, regime, method, share, power in jobs:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import imageio.v3 as iio
 import numpy as np
@@ -27,6 +27,7 @@ from diamond_sss.pipeline.run import (
     PipelineManifest,
     StageRecord,
     changed_inputs,
+    compared_inputs,
     listed_changes,
     move_aside_if_changed,
     real_copies,
@@ -295,6 +296,16 @@ def test_changed_inputs_name_each_differing_key():
     assert listed_changes(many, {"overrides": {}}, most=2) == (
         "overrides.k0: 0 -> missing; overrides.k1: 1 -> missing; and 7 more")
     assert listed_changes(recorded, given) == "pipeline.prelim_preset: missing -> None; pipeline.rounds: 1 -> 2"
+
+
+def test_a_pipeline_setting_added_since_a_run_was_recorded_reads_as_its_default(tmp_path):
+    cfg = PipelineConfig()
+    given = {"regime": "all", "pipeline": asdict(cfg) | {"augment": list(cfg.augment)}}
+    recorded = {"regime": "all", "pipeline": {k: v for k, v in given["pipeline"].items() if k != "repair_model"}}
+    assert compared_inputs(recorded) == compared_inputs(given)  # the run made before repair_model is not redone
+    changed = {"regime": "all", "pipeline": {**given["pipeline"], "repair_model": "elsewhere"}}
+    assert changed_inputs(compared_inputs(recorded), compared_inputs(changed)) == [
+        "pipeline.repair_model: None -> 'elsewhere'"]
 
 
 def test_relighting_targets_the_lights_each_view_lacks(setup, tmp_path):

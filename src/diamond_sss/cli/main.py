@@ -14,6 +14,7 @@ from diamond_sss.cli.model_commands import blend_models
 from diamond_sss.cli.nvs_commands import convert_free3d, finetune_nvs, nvs
 from diamond_sss.cli.pipeline_commands import run
 from diamond_sss.cli.relight_commands import finetune_relight, relight
+from diamond_sss.cli.repair_commands import repair_data, repair_train
 from diamond_sss.cli.synth_commands import synth
 from diamond_sss.cli.train_commands import ablate, config, evaluate, export, render, train, view
 from diamond_sss.cli.tune_commands import tune
@@ -25,7 +26,8 @@ def commands() -> dict[str, Callable[..., None]]:
     return {"demo": demo, "info": info, "regimes": regimes, "subset": subset, "synth": synth, "config": config,
             "train": train, "eval": evaluate, "render": render, "export": export, "view": view, "ablate": ablate,
             "run": run, "tune": tune, "finetune-relight": finetune_relight, "relight": relight,
-            "finetune-nvs": finetune_nvs, "nvs": nvs, "convert-free3d": convert_free3d, "blend-models": blend_models}
+            "finetune-nvs": finetune_nvs, "nvs": nvs, "convert-free3d": convert_free3d, "blend-models": blend_models,
+            "repair-data": repair_data, "repair-train": repair_train}
 
 
 def configure_logging() -> None:

@@ -22,7 +22,8 @@ from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.images import load_rgba, resize_area
 from diamond_sss.diffusion.common.manifest import GeneratedImage
 from diamond_sss.pipeline.capture import check_on_lattice
-from diamond_sss.scene.model import RelightableScene, SceneRender
+from diamond_sss.runs.folder import render_lattice_image
+from diamond_sss.scene.model import RelightableScene
 
 
 def agreement_factors(errors: list[float], power: float) -> list[float]:
@@ -33,14 +34,6 @@ def agreement_factors(errors: list[float], power: float) -> list[float]:
         return [1.0] * len(errors)
     median = statistics.median(errors)
     return [1.0 if error <= median else (median / error) ** power for error in errors]
-
-
-def render_lattice_image(scene: RelightableScene, lattice: OLATDataset, view: int, light: int) -> SceneRender:
-    """``scene`` rendered (no gradient) at camera ``view`` of ``lattice`` under its light ``light``."""
-    camera, lit, device = lattice.cameras[view], lattice.lights[light], scene.gaussians.means.device
-    with torch.no_grad():
-        return scene.render(camera.w2c[None].to(device), camera.K[None].to(device), camera.width, camera.height,
-                            lit.position[None].to(device), lit.intensity[None].to(device))
 
 
 def load_generated(item: GeneratedImage, lattice: OLATDataset,

@@ -6,8 +6,9 @@ from dataclasses import dataclass
 
 from diamond_sss.utils.fields import described
 
-AUGMENTS = ("nvs", "relight")
-"""The diffusion stages, in the order they run."""
+AUGMENTS = ("nvs", "relight", "repair")
+"""The diffusion stages, in the order they run: the paper's two (``nvs``, ``relight``), or ``repair`` alone (issue
+59, beyond the paper: the preliminary reconstruction's renders at the same targets, repaired by one model)."""
 
 SHORT_RUN_PRELIM_PRESET = "sss3dgs"
 """Preset of a short run's preliminary reconstruction (``diamond-sss run --short-run``), as the demo and
@@ -18,7 +19,8 @@ SHORT_RUN_PRELIM_PRESET = "sss3dgs"
 class PipelineConfig:
     """Settings of :func:`~diamond_sss.pipeline.run.run_pipeline` besides the reconstruction's configuration."""
 
-    augment: tuple[str, ...] = described(AUGMENTS, "diffusion stages to run: a subset of nvs, relight")
+    augment: tuple[str, ...] = described(AUGMENTS[:2], "diffusion stages to run: a subset of nvs, relight; or repair "
+                                                       "alone")
     prelim_iterations: int | None = described(None, "training steps of the preliminary reconstruction, its "
                                                     "schedule scaled to them (default: its settings' steps)")
     prelim_preset: str | None = described(None, "preset of the preliminary reconstruction (default: the final "
@@ -44,6 +46,8 @@ class PipelineConfig:
     relight_lights: int = described(8, "at most this many missing lights generated per view (0: all)")
     nvs_model: str | None = described(None, "folder of a novel-view model (default: the shipped one)")
     relight_model: str | None = described(None, "folder of a relighting model (default: the shipped one)")
+    repair_model: str | None = described(None, "folder of a render-repair model (default: the shipped one; "
+                                               "`diamond-sss repair-train` makes one)")
     nvs_geometry: str | None = described(None, "metric depth of the real views that the novel-view model's warp "
                                                "hint splats: a --geometry source with metric depth (maps: the "
                                                "capture's stored depth maps, e.g. a depth sensor's; or a "

@@ -49,11 +49,11 @@ from diamond_sss.diffusion.common.manifest import MANIFEST_NAME, read_image_mani
 from diamond_sss.errors import DataError
 from diamond_sss.evaluation.metrics import mask_iou
 from diamond_sss.evaluation.run import evaluate_run
-from diamond_sss.pipeline.agreement import agreement_factors, render_errors, render_lattice_image
+from diamond_sss.pipeline.agreement import agreement_factors, render_errors
 from diamond_sss.pipeline.capture import GeneratedImage, check_on_lattice, write_capture
 from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
 from diamond_sss.pipeline.rig import LatticeSource, build_lattice
-from diamond_sss.runs.folder import load_scene
+from diamond_sss.runs.folder import load_scene, render_lattice_image
 from diamond_sss.training.config import PIPELINE_KEYS, TrainConfig
 from diamond_sss.training.overrides import make_config, rescheduled, with_values
 from diamond_sss.training.run import train_run
@@ -99,7 +99,8 @@ def compared_inputs(inputs: Any) -> Any:
     """``inputs`` (a ``pipeline.json`` record) without the :data:`UNCOMPARED_SETTINGS`: what a resumed run must
     share with the recorded one. A record made while a pipeline setting was a reconstruction's key
     (:data:`~diamond_sss.training.config.PIPELINE_KEYS`) reads as the same run records it now: the final
-    reconstruction's value (else the default) among the pipeline's settings, none in the overrides."""
+    reconstruction's value (else the default) among the pipeline's settings, none in the overrides. A pipeline
+    setting added since a run was recorded reads as its default (the behaviour from before it existed)."""
     if not (isinstance(inputs, dict) and isinstance(inputs.get("pipeline"), dict)):
         return inputs
     settings = {key: value for key, value in inputs["pipeline"].items() if key not in UNCOMPARED_SETTINGS}
@@ -112,6 +113,9 @@ def compared_inputs(inputs: Any) -> Any:
         for record in overrides.values():
             record.pop(dotted, None)
             record.pop(setting, None)
+    defaults = asdict(PipelineConfig())
+    for key in defaults.keys() - set(UNCOMPARED_SETTINGS):
+        settings.setdefault(key, list(defaults[key]) if isinstance(defaults[key], tuple) else defaults[key])
     return {**inputs, **overrides, "pipeline": settings}
 
 
@@ -211,8 +215,9 @@ def _model_hash(stage: str, folder: str | Path) -> str:
     from diamond_sss.diffusion.common.hashing import files_hash
 
     if not Path(folder).is_dir():
+        how = "repair-data` and `diamond-sss repair-train" if stage == "repair" else f"finetune-{stage}"
         raise FileNotFoundError(f"no {stage} model in {folder}: pass --{stage}-model PATH (train one with "
-                                f"`diamond-sss finetune-{stage}`) or leave '{stage}' out of --augment")
+                                f"`diamond-sss {how}`) or leave '{stage}' out of --augment")
     return files_hash(folder)
 
 
@@ -308,6 +313,9 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
     unknown = set(cfg.augment) - set(AUGMENTS)
     if unknown:
         raise ValueError(f"--augment: unknown stage(s) {sorted(unknown)}; use none or a subset of {AUGMENTS}")
+    if "repair" in cfg.augment and len(cfg.augment) > 1:
+        raise ValueError(f"--augment {','.join(cfg.augment)}: repair takes the place of nvs and relight (it makes "
+                         "the images of the same targets); give --augment repair alone")
     if cfg.min_real_share is not None and not 0.0 <= cfg.min_real_share < 1.0:
         raise ValueError(f"pipeline config 'min_real_share' must be in [0, 1), got {cfg.min_real_share}")
     if not (math.isfinite(cfg.generated_as_real) and cfg.generated_as_real > 0.0):
@@ -373,6 +381,10 @@ def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, 
         from diamond_sss.diffusion.relight.inference import shipped_model_path
 
         model_hashes["relight"] = _model_hash("relight", cfg.relight_model or shipped_model_path())
+    if "repair" in cfg.augment:
+        from diamond_sss.diffusion.repair.pipeline import default_model_dir as repair_model_dir
+
+        model_hashes["repair"] = _model_hash("repair", cfg.repair_model or repair_model_dir())
     inputs = {
         "data": str(Path(data).resolve()), "split": split, "regime": regime, "preset": preset, "seed": seed,
         "overrides": overrides, "prelim_overrides": prelim_overrides,
@@ -398,8 +410,8 @@ def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, 
 def lattice_has_targets(real: OLATDataset, selection: RegimeSelection, augment: tuple[str, ...]) -> bool:
     """Whether every stage of ``augment`` has something to generate on the capture's own lattice: ``nvs`` a camera
     the regime left out, ``relight`` a (view, light) pair the regime did not select."""
-    needs = {"nvs": len(selection.views) < real.num_views,
-             "relight": len(selection.observations) < real.num_views * real.num_lights}
+    missing_images = len(selection.observations) < real.num_views * real.num_lights
+    needs = {"nvs": len(selection.views) < real.num_views, "relight": missing_images, "repair": missing_images}
     return all(needs[stage] for stage in augment)
 
 
@@ -560,6 +572,50 @@ def relight_stage(ctx: PipelineContext, sources_json: Path) -> dict:
     return counts
 
 
+def repair_target_pairs(ctx: PipelineContext) -> list[tuple[int, int]]:
+    """The (view, light) images ``repair`` makes: those the paper's two stages would generate. Under each real light
+    the (spread) missing views, as ``nvs``; then for every view with an image the (spread) lattice lights it lacks,
+    as ``relight``."""
+    cfg, lattice = ctx.cfg, ctx.lattice
+    real_views = set(ctx.selection.views)
+    missing = [v for v in range(lattice.num_views) if v not in real_views]
+    new_views = spread_subset(missing, ctx.view_dirs, cfg.nvs_views, ctx.seed)
+    lights_of_view: dict[int, set[int]] = {}
+    for index in ctx.selection.observations:
+        obs = ctx.real.observations[index]
+        lights_of_view.setdefault(obs.view, set()).add(obs.light)
+    for view in new_views:
+        lights_of_view[view] = set(ctx.selection.lights)
+    pairs = [(view, light) for view in new_views for light in sorted(set(ctx.selection.lights))]
+    for view, lights in sorted(lights_of_view.items()):
+        lacking = [light for light in range(lattice.num_lights) if light not in lights]
+        pairs += [(view, light) for light in spread_subset(lacking, ctx.light_dirs, cfg.relight_lights, ctx.seed)]
+    return pairs
+
+
+def repair_stage(ctx: PipelineContext) -> dict:
+    """The preliminary reconstruction's renders at :func:`repair_target_pairs`, repaired, into ``<out>/repair``."""
+    from diamond_sss.diffusion.repair.inputs import RepairInputs
+    from diamond_sss.diffusion.repair.pipeline import load_repair_model, repair_targets
+
+    targets = repair_target_pairs(ctx)
+    if not targets:
+        why = (f"every camera and light of the lattice ({ctx.lattice.json_path}) has a real image in the regime, "
+               "or nvs_views and relight_lights are 0")
+        logger.warning("repair: no image to make: %s", why)
+        return {"images": 0, "why": why}
+    model = load_repair_model(ctx.cfg.repair_model, ctx.cfg.device)
+    scene = load_scene(ctx.prelim_dir, ctx.cfg.device)[0].eval()
+    builder = RepairInputs(scene, ctx.lattice, ctx.real, ctx.selection.observations)
+    repair_targets(model, builder, targets, ctx.out / "repair", show_progress=ctx.show_progress)
+    return {"images": len(targets)}
+
+
+def repaired_images(ctx: PipelineContext) -> list[GeneratedImage]:
+    """Every image the ``repair`` stage made."""
+    return read_image_manifest(ctx.out / "repair" / MANIFEST_NAME)
+
+
 def relit_images(ctx: PipelineContext) -> list[GeneratedImage]:
     """Every image the ``relight`` stage generated."""
     return read_image_manifest(ctx.out / "relight" / "out" / MANIFEST_NAME)
@@ -663,6 +719,10 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
         sources_json = write_relight_sources(ctx, generated)
         manifest.stage("relight", lambda: relight_stage(ctx, sources_json))
         generated += silhouettes.keep(relit_images(ctx))
+    if "repair" in cfg.augment:
+        manifest.stage("repair", lambda: repair_stage(ctx))
+        if (ctx.out / "repair" / MANIFEST_NAME).is_file():
+            generated += silhouettes.keep(repaired_images(ctx))
     if cfg.augment and not generated:
         raise ValueError(nothing_generated(manifest, cfg, silhouettes.dropped))
     extra, counts = final_sources(ctx, generated, silhouettes.dropped)

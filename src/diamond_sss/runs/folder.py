@@ -9,8 +9,9 @@ from pathlib import Path
 
 import torch
 
+from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.scene.io import read_scene
-from diamond_sss.scene.model import RelightableScene
+from diamond_sss.scene.model import RelightableScene, SceneRender
 from diamond_sss.training.config import TrainConfig
 from diamond_sss.training.overrides import load_run_config
 
@@ -22,3 +23,11 @@ def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[Relig
     if not path.is_file():
         raise ValueError(f"{run_dir}: no trained model ({path} is missing; is the run finished?)")
     return read_scene(path, cfg.shading, device), cfg
+
+
+def render_lattice_image(scene: RelightableScene, lattice: OLATDataset, view: int, light: int) -> SceneRender:
+    """``scene`` rendered (no gradient) at camera ``view`` of ``lattice`` under its light ``light``."""
+    camera, lit, device = lattice.cameras[view], lattice.lights[light], scene.gaussians.means.device
+    with torch.no_grad():
+        return scene.render(camera.w2c[None].to(device), camera.K[None].to(device), camera.width, camera.height,
+                            lit.position[None].to(device), lit.intensity[None].to(device))

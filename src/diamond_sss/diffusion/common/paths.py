@@ -7,7 +7,7 @@ from importlib import resources
 from pathlib import Path
 
 CACHE_ENV = "DIAMOND_SSS_CACHE"
-MODEL_KINDS = ("nvs", "relight")
+MODEL_KINDS = ("nvs", "relight", "repair")
 
 
 def _kind(kind: str) -> str:
@@ -17,7 +17,7 @@ def _kind(kind: str) -> str:
 
 
 def shipped_model_dir(kind: str) -> Path:
-    """Folder of the ``kind`` model (``nvs`` / ``relight``) shipped in the package (``assets/models/<kind>``)."""
+    """Folder of the ``kind`` model (``nvs`` / ``relight`` / ``repair``) shipped in the package (``assets/models/<kind>``)."""
     return Path(str(resources.files("diamond_sss") / "assets" / "models" / _kind(kind)))
 
 

@@ -1,0 +1,135 @@
+"""Training pairs of the repair model: a sparse reconstruction rendered at the lattice images it did not see (the
+model's input, :mod:`.inputs`) against the true images there.
+
+A pair file (``safetensors``, written atomically) holds ``inputs [N, 23, H, W]`` and ``targets [N, 4, H, W]``
+(premultiplied sRGB and alpha) in float16, and in its metadata the capture, the run and the model-hash of the
+reconstruction. :class:`RepairPairs` reads several and draws seeded batches of random crops.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors import safe_open
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from diamond_sss.data.conventions import linear_to_srgb
+from diamond_sss.data.dataset import OLATDataset
+from diamond_sss.diffusion.repair.inputs import RepairInputs
+from diamond_sss.errors import DataError
+from diamond_sss.runs.folder import load_scene
+from diamond_sss.utils.io import atomic_save_safetensors, read_json, sha256_file
+
+
+def target_image(dataset: OLATDataset, index: int) -> Tensor:
+    """Observation ``index`` of ``dataset`` as the model's target: premultiplied sRGB and alpha ``[4, H, W]``."""
+    sample = dataset.load(index)
+    return torch.cat([linear_to_srgb(sample.rgb.clamp(0, 1)), sample.mask], dim=-1).permute(2, 0, 1).float()
+
+
+def unseen_observations(dataset: OLATDataset, seen: Sequence[int], most: int, seed: int) -> list[int]:
+    """At most ``most`` observations of ``dataset`` outside ``seen`` (0: all), a seeded draw, in index order."""
+    unseen = sorted(set(range(len(dataset.observations))) - set(seen))
+    if 0 < most < len(unseen):
+        chosen = torch.randperm(len(unseen), generator=torch.Generator().manual_seed(seed))[:most]
+        unseen = sorted(unseen[int(i)] for i in chosen)
+    return unseen
+
+
+def write_pairs(run: Path, out: Path, *, data: Path | None = None, split: str = "train", most: int = 200,
+                seed: int = 0, show_progress: bool = True) -> Path:
+    """Pairs of the reconstruction in ``run`` (a finished ``train`` run folder; ``regime.json`` names the images it
+    saw) on the capture ``data`` (default: the one its ``data.json`` names), written to ``out``."""
+    run = Path(run)
+    regime_file, data_file = run / "regime.json", run / "data.json"
+    if not regime_file.is_file():
+        raise DataError(f"{run}: no regime.json; give a finished `diamond-sss train` run folder")
+    if data is None:
+        recorded = read_json(data_file) if data_file.is_file() else {}
+        if not isinstance(recorded, dict) or "data" not in recorded:
+            raise DataError(f"{data_file}: no 'data' key naming the capture; give it with --data")
+        data = Path(recorded["data"])
+    scene, cfg = load_scene(run)
+    dataset = OLATDataset(data, split, downscale=cfg.runtime.downscale)
+    seen = [int(i) for i in read_json(regime_file)["observations"]]
+    if max(seen, default=-1) >= len(dataset.observations):
+        raise DataError(f"{regime_file}: observation {max(seen)} is not in {dataset.json_path} "
+                        f"({len(dataset.observations)} images): the run was trained on another capture")
+    builder = RepairInputs(scene.eval(), dataset, dataset, seen)
+    inputs, targets = [], []
+    for index in tqdm(unseen_observations(dataset, seen, most, seed), desc=f"repair pairs {run.name}", unit="pair",
+                      disable=not show_progress, dynamic_ncols=True):
+        obs = dataset.observations[index]
+        inputs.append(builder.target(obs.view, obs.light)[0].half())
+        targets.append(target_image(dataset, index).half())
+    if not inputs:
+        raise DataError(f"{run}: the reconstruction saw every image of {dataset.json_path}: no pair to make")
+    metadata = {"run": str(run.resolve()), "data": str(Path(data).resolve()),
+                "model_sha256": sha256_file(run / "model.safetensors"), "pairs": str(len(inputs))}
+    return atomic_save_safetensors(out, {"inputs": torch.stack(inputs), "targets": torch.stack(targets)},
+                                   metadata=metadata)
+
+
+def read_pair_metadata(path: str | os.PathLike) -> dict[str, str]:
+    """The metadata :func:`write_pairs` recorded in ``path``."""
+    with safe_open(str(path), framework="pt") as handle:
+        return dict(handle.metadata() or {})
+
+
+@dataclass
+class RepairPairs:
+    """Pairs of one or more files, concatenated: ``inputs [N, 23, H, W]``, ``targets [N, 4, H, W]`` (float32)."""
+
+    inputs: Tensor
+    targets: Tensor
+    files: list[str]
+
+    @classmethod
+    def read(cls, paths: Sequence[str | os.PathLike]) -> RepairPairs:
+        """The pairs of ``paths`` (same image size in all)."""
+        if not paths:
+            raise DataError("repair pairs: no pair file given")
+        inputs, targets = [], []
+        for path in paths:
+            with safe_open(str(path), framework="pt") as handle:
+                keys = set(handle.keys())
+                if keys != {"inputs", "targets"}:
+                    raise DataError(f"{path}: not a repair pair file (keys {sorted(keys)}, expected inputs, targets)")
+                inputs.append(handle.get_tensor("inputs").float())
+                targets.append(handle.get_tensor("targets").float())
+            if inputs[-1].shape[-2:] != inputs[0].shape[-2:]:
+                raise DataError(f"{path}: {tuple(inputs[-1].shape[-2:])} images, the first file's are "
+                                f"{tuple(inputs[0].shape[-2:])}")
+        return cls(torch.cat(inputs), torch.cat(targets), [str(p) for p in paths])
+
+    def __len__(self) -> int:
+        return self.inputs.shape[0]
+
+    def batch(self, count: int, crop: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+        """``count`` random pairs (with replacement), each a random ``crop`` x ``crop`` window (0: whole)."""
+        index = torch.randint(0, len(self), (count,), generator=generator)
+        inputs, targets = self.inputs[index], self.targets[index]
+        height, width = inputs.shape[-2:]
+        if crop <= 0 or crop >= min(height, width):
+            return inputs, targets
+        top = torch.randint(0, height - crop + 1, (count,), generator=generator)
+        left = torch.randint(0, width - crop + 1, (count,), generator=generator)
+        rows = top[:, None] + torch.arange(crop)
+        cols = left[:, None] + torch.arange(crop)
+        pick = torch.arange(count)[:, None, None]
+
+        def window(x: Tensor) -> Tensor:
+            return x.permute(0, 2, 3, 1)[pick, rows[:, :, None], cols[:, None, :]].permute(0, 3, 1, 2)
+
+        return window(inputs), window(targets)
+
+
+def describe(paths: Sequence[str | os.PathLike]) -> str:
+    """One line per pair file: its pairs and reconstruction (for logs)."""
+    return "\n".join(f"{path}: {json.dumps(read_pair_metadata(path))}" for path in paths)

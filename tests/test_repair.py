@@ -1,0 +1,198 @@
+"""Render repair (issue 59): the model's identity start, its inputs, the training pairs, exact resume, and
+``run --augment repair`` end to end, on an analytic capture with a tiny model."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+import torch
+from repo_scripts import load_script
+
+from diamond_sss.cli.main import main
+from diamond_sss.data import OLATDataset
+from diamond_sss.data.analytic import make_capture_with_test_split
+from diamond_sss.data.conventions import linear_to_srgb
+from diamond_sss.diffusion.relight.light import light_code
+from diamond_sss.diffusion.repair.config import INPUT_CHANNELS, RepairModelConfig, RepairTrainConfig
+from diamond_sss.diffusion.repair.data import RepairPairs, read_pair_metadata, target_image, write_pairs
+from diamond_sss.diffusion.repair.inputs import RepairInputs
+from diamond_sss.diffusion.repair.model import RepairModel
+from diamond_sss.diffusion.repair.train import train_repair, validation
+from diamond_sss.errors import DataError
+from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
+from diamond_sss.runs.folder import load_scene
+from diamond_sss.training.run import train_from_preset
+from diamond_sss.utils.io import read_json
+
+TRAIN = {"num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "iterations": 2, "raytrace_gaussians": 32,
+         "mv_pixels_per_pair": 16, "log_every": 1, "device": "cpu"}
+TINY = RepairModelConfig(block_out_channels=(8, 16), norm_num_groups=4)
+REGIME = "views=2,lights=1"
+
+
+def tiny_model(seed: int = 0) -> RepairModel:
+    torch.manual_seed(seed)
+    return RepairModel(TINY)
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    data = tmp_path_factory.mktemp("capture")
+    make_capture_with_test_split(data, views=6, lights=3, size=16)
+    run = tmp_path_factory.mktemp("run") / "prelim"
+    train_from_preset(data, run, regime=REGIME, overrides=TRAIN, show_progress=False)
+    pairs = write_pairs(run, tmp_path_factory.mktemp("pairs") / "prelim.safetensors", most=6, show_progress=False)
+    model = tiny_model()
+    with torch.no_grad():  # a repair model that changes the render: its last layer away from zero
+        model.unet.conv_out.weight.normal_(0.0, 0.05)
+    return data, run, pairs, model.save(tmp_path_factory.mktemp("repair"))
+
+
+def test_an_untrained_model_returns_the_render_at_any_size():
+    model = tiny_model()
+    inputs = torch.rand(2, INPUT_CHANNELS, 18, 22) * 1.2  # sides not multiples of 2: padded and cropped back
+    output = model(inputs)
+    assert output.shape == (2, 4, 18, 22)
+    assert torch.equal(output, inputs[:, :4].clamp(0, 1))
+    output.sum().backward()  # the zero last layer still receives a gradient: training moves it
+    assert model.unet.conv_out.weight.grad.abs().sum() > 0
+
+
+def test_a_saved_model_loads_to_the_same_outputs(tmp_path, setup):
+    model = RepairModel.load(setup[3])
+    inputs = torch.rand(1, INPUT_CHANNELS, 16, 16)
+    with torch.no_grad():
+        first = model(inputs)
+    assert not torch.equal(first, inputs[:, :4].clamp(0, 1))
+    again = RepairModel.load(model.save(tmp_path / "copy"))
+    with torch.no_grad():
+        assert torch.equal(again(inputs), first)
+    (tmp_path / "copy" / "config.json").write_text(json.dumps({"model": "nvs", "config": {}}))
+    with pytest.raises(ValueError, match="holds a 'nvs' model, not a 'repair' one"):
+        RepairModel.load(tmp_path / "copy")
+
+
+def test_the_inputs_hold_the_render_the_real_image_warped_and_the_light_code(setup):
+    data, run, _, _ = setup
+    dataset = OLATDataset(data, "train")
+    seen = read_json(run / "regime.json")["observations"]
+    builder = RepairInputs(load_scene(run)[0].eval(), dataset, dataset, seen)
+    obs = dataset.observations[seen[0]]
+    inputs, render = builder.target(obs.view, obs.light)
+    assert inputs.shape == (INPUT_CHANNELS, 16, 16)
+    assert torch.allclose(inputs[:3], linear_to_srgb(render.radiance[0].clamp(0, 1)).permute(2, 0, 1))
+    assert torch.allclose(inputs[3], render.gbuffer.alpha[0, ..., 0])
+    # a real image warped into its own camera lands on itself, wherever the render has a surface
+    valid = inputs[12] > 0
+    assert valid.float().mean() > 0.2
+    real = linear_to_srgb(dataset.load(seen[0]).rgb).permute(2, 0, 1)
+    assert torch.allclose(inputs[9:12][:, valid], real[:, valid], atol=1e-4)
+    camera, light = dataset.cameras[obs.view], dataset.lights[obs.light]
+    code = light_code(light.position, camera.w2c, dataset.bounds.center, dataset.bounds.radius)
+    assert torch.allclose(inputs[13:, 0, 0], code.float()) and torch.allclose(inputs[13:, 15, 9], code.float())
+    # under a light no real image has, nothing is warped
+    unlit = next(light for light in range(dataset.num_lights) if light not in builder.real_of_light)
+    assert builder.source(obs.view, unlit) is None
+    assert not builder.target(obs.view, unlit)[0][9:13].any()
+
+
+def test_pairs_are_the_unseen_images_against_the_truth(setup, tmp_path):
+    data, run, pairs_file, _ = setup
+    metadata = read_pair_metadata(pairs_file)
+    assert metadata["pairs"] == "6" and metadata["data"] == str(data.resolve())
+    pairs = RepairPairs.read([pairs_file])
+    dataset = OLATDataset(data, "train")
+    seen = set(read_json(run / "regime.json")["observations"])
+    targets = [target_image(dataset, i) for i in range(len(dataset.observations)) if i not in seen]
+    assert any(torch.allclose(pairs.targets[0], t, atol=1e-3) for t in targets)  # float16 storage
+    with pytest.raises(DataError, match="no regime.json"):
+        write_pairs(tmp_path, tmp_path / "x.safetensors")
+
+
+def test_batches_crop_the_same_window_of_input_and_target():
+    rows, cols = torch.meshgrid(torch.arange(8.0), torch.arange(8.0), indexing="ij")
+    pattern = (rows * 10 + cols)[None, None]
+    pairs = RepairPairs(pattern.expand(3, INPUT_CHANNELS, 8, 8).clone(), pattern.expand(3, 4, 8, 8).clone(), [])
+    inputs, targets = pairs.batch(5, 4, torch.Generator().manual_seed(1))
+    assert inputs.shape == (5, INPUT_CHANNELS, 4, 4) and targets.shape == (5, 4, 4, 4)
+    for window in inputs[:, 0]:
+        top, left = divmod(int(window[0, 0]), 10)
+        assert torch.equal(window, pattern[0, 0, top:top + 4, left:left + 4])
+    assert torch.equal(inputs[:, :4], targets)
+
+
+def test_training_lowers_the_error_and_resumes_exactly(setup, tmp_path):
+    _, _, pairs_file, _ = setup
+    config = RepairTrainConfig(steps=3, batch_size=2, crop=8, checkpoint_every=1, log_every=1, validation_files=0,
+                               warmup_steps=0, learning_rate=1e-2, ema_decay=0.0)
+    straight = train_repair([pairs_file], tmp_path / "straight", config, model=tiny_model(), log=lambda _: None)
+    stopped = RepairTrainConfig(**{**config.__dict__, "time_limit_s": 0.0})
+    train_repair([pairs_file], tmp_path / "resumed", stopped, model=tiny_model(), log=lambda _: None)
+    log = (tmp_path / "resumed" / "train_log.jsonl").read_text().splitlines()
+    assert [json.loads(line)["step"] for line in log] == [1]
+    resumed = train_repair([pairs_file], tmp_path / "resumed", config, model=tiny_model(seed=5), log=lambda _: None)
+    a, b = RepairModel.load(straight).state_dict(), RepairModel.load(resumed).state_dict()
+    assert all(torch.allclose(a[k], b[k], atol=1e-6) for k in a)
+    longer = RepairTrainConfig(**{**config.__dict__, "steps": 40, "crop": 0})
+    trained = RepairModel.load(train_repair([pairs_file], tmp_path / "longer", longer, model=tiny_model(),
+                                            log=lambda _: None))
+    pairs = RepairPairs.read([pairs_file])
+    with torch.no_grad():
+        before = (tiny_model()(pairs.inputs) - pairs.targets).abs().mean()
+        after = (trained(pairs.inputs) - pairs.targets).abs().mean()
+    assert after < before
+    with pytest.raises(ValueError, match="all held out for validation"):
+        train_repair([pairs_file], tmp_path / "none", RepairTrainConfig(validation_files=1))
+
+
+def test_run_with_augment_repair_makes_the_images_the_paper_stages_would(setup, tmp_path, capsys):
+    data, _, _, model = setup
+    cfg = PipelineConfig(augment=("repair",), repair_model=str(model), nvs_views=2, relight_lights=1,
+                         min_silhouette_iou=0.0, min_mask_fraction=0.0)
+    result = run_pipeline(data, tmp_path, regime=REGIME, overrides=TRAIN, config=cfg)
+    assert re.search(r"repair: 100%\|[^|]*\| 1/1 ", capsys.readouterr().err)
+    manifest = json.loads((tmp_path / "pipeline.json").read_text())
+    assert list(manifest["stages"]) == ["prelim", "repair", "final", "eval"]
+    assert set(manifest["inputs"]["model_hashes"]) == {"repair"}
+    # as nvs + relight: 2 new views under the 1 real light, then the 4 views with an image each relit to 1 more light
+    assert manifest["stages"]["repair"]["images"] == 6
+    assert result["synthetic_images"] == 6 and result["real_images"] == 2
+    repaired = OLATDataset(tmp_path / "synthetic", "train")
+    assert len(repaired) == 6 and {"psnr", "mask_iou"} <= set(result)
+
+
+def test_repair_is_refused_beside_the_paper_stages_or_without_a_model(setup, tmp_path):
+    data = setup[0]
+    with pytest.raises(ValueError, match="repair takes the place of nvs and relight"):
+        run_pipeline(data, tmp_path / "a", regime=REGIME, overrides=TRAIN,
+                     config=PipelineConfig(augment=("nvs", "repair")))
+    with pytest.raises(FileNotFoundError, match="no repair model in .*pass --repair-model"):
+        run_pipeline(data, tmp_path / "b", regime=REGIME, overrides=TRAIN,
+                     config=PipelineConfig(augment=("repair",), repair_model=str(tmp_path / "missing")))
+
+
+def test_the_command_line_writes_pairs_and_trains(setup, tmp_path, capsys):
+    _, run, _, _ = setup
+    main(["repair-data", "--run", str(run), "--out", str(tmp_path / "pairs"), "--most", "2", "--quiet"])
+    pairs = tmp_path / "pairs" / "prelim.safetensors"
+    assert read_pair_metadata(pairs)["pairs"] == "2"
+    main(["repair-data", "--run", str(run), "--out", str(tmp_path / "pairs"), "--quiet"])
+    assert "exists, kept" in capsys.readouterr().out
+    main(["repair-train", "--pairs", str(pairs), str(pairs), "--out", str(tmp_path / "train"), "--steps", "2",
+          "--batch-size", "2", "--crop", "8", "--block-out-channels", "8", "16", "--norm-num-groups", "4", "--quiet"])
+    validation = read_json(tmp_path / "train" / "validation.json")
+    assert validation["pairs"] == 2 and validation["repaired_psnr"] > 0 and validation["render_psnr"] > 0
+
+
+def test_the_quality_benchmark_scores_the_renders_and_their_repairs(setup, tmp_path, monkeypatch, capsys):
+    _, run, _, model = setup
+    benchmark = load_script("benchmarks/repair_quality.py", "repair_quality_benchmark")
+    monkeypatch.setattr("sys.argv", ["repair_quality.py", "--model", str(model), "--runs", str(run), "--most", "3",
+                                     "--pairs-dir", str(tmp_path / "pairs"), "--results", str(tmp_path / "out")])
+    benchmark.main()
+    row = json.loads((tmp_path / "out" / "repair_quality.json").read_text())["rows"][0]
+    pairs = RepairPairs.read(list((tmp_path / "pairs").glob("*.safetensors")))
+    assert row["pairs"] == 3 and row == {**row, **validation(RepairModel.load(model), pairs)}
+    assert "| reconstruction | capture | pairs | render | repaired |" in capsys.readouterr().out
