@@ -8,7 +8,8 @@
 # at 200 of the lattice images they did not see, against the true images (`diamond-sss repair-data`).
 # Not committed: written to outputs/repair/ (captures/<name>, runs/<name>_images<N>_seed<S>, pairs/). Resumable: a
 # finished capture (meta.json), run (model.safetensors) or pair file is skipped.
-# Usage: scripts/make_repair_data.sh [PYTHON]   (about 40 min on 2 CPU cores)
+# Then trains the model into outputs/repair/train (`diamond-sss repair-train`, resumable).
+# Usage: scripts/make_repair_data.sh [PYTHON]   (about 70 min on 2 CPU cores)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON="${1:-.venv/bin/python}"
@@ -45,3 +46,7 @@ names=()
 for spec in "${OBJECTS[@]}"; do IFS=: read -r shape material seed <<< "$spec"; names+=("${shape}_${material}"); done
 printf '%s\n' "${names[@]}" | xargs -P 2 -L 1 bash -c 'pairs_of $0'
 du -sh "$OUT"/captures "$OUT"/runs "$OUT"/pairs
+# the model: torus/skin's 4 pair files held out for validation (an object of the same rig the model never saw)
+"$PYTHON" -m diamond_sss.cli.main repair-train --pairs "$OUT"/pairs/torus_skin_* \
+    $(ls "$OUT"/pairs/*.safetensors | grep -v /torus_skin_) --validation-files 4 --out "$OUT/train"
+# shipped as src/diamond_sss/assets/models/repair (cp "$OUT"/train/model/* there)

@@ -28,7 +28,7 @@ from diamond_sss.utils.io import read_json
 
 TRAIN = {"num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "iterations": 2, "raytrace_gaussians": 32,
          "mv_pixels_per_pair": 16, "log_every": 1, "device": "cpu"}
-TINY = RepairModelConfig(block_out_channels=(8, 16), norm_num_groups=4)
+TINY = RepairModelConfig(block_out_channels=(8, 16), norm_num_groups=4, resolution=16)
 REGIME = "views=2,lights=1"
 
 
@@ -96,6 +96,28 @@ def test_the_inputs_hold_the_render_the_real_image_warped_and_the_light_code(set
     unlit = next(light for light in range(dataset.num_lights) if light not in builder.real_of_light)
     assert builder.source(obs.view, unlit) is None
     assert not builder.target(obs.view, unlit)[0][9:13].any()
+
+
+def test_a_larger_capture_is_repaired_at_the_models_size(setup, tmp_path):
+    data, run, _, model = setup
+    dataset = OLATDataset(data, "train")
+    seen = read_json(run / "regime.json")["observations"]
+    builder = RepairInputs(load_scene(run)[0].eval(), dataset, dataset, seen, size=8)
+    obs = dataset.observations[seen[0]]
+    inputs, render = builder.target(obs.view, obs.light)
+    assert inputs.shape == (INPUT_CHANNELS, 8, 8) and render.radiance.shape == (1, 8, 8, 3)
+    camera = dataset.cameras[obs.view]
+    assert torch.allclose(builder.camera(obs.view)[1][:2], camera.K[:2] / 2)  # a 16-px camera at 8 px
+    assert inputs[12].any()  # the full-size real image still warps into the smaller target
+    small = RepairModel.load(model)
+    object.__setattr__(small, "config", RepairModelConfig(**{**small.config.__dict__, "resolution": 8}))
+    small.save(tmp_path / "small")
+    cfg = PipelineConfig(augment=("repair",), repair_model=str(tmp_path / "small"), nvs_views=2, relight_lights=1,
+                         min_silhouette_iou=0.0, min_mask_fraction=0.0)
+    result = run_pipeline(data, tmp_path / "run", regime=REGIME, overrides={**TRAIN, "lambda_dssim": 0.0}, config=cfg,
+                          show_progress=False)  # no SSIM on 8-px images
+    repaired = OLATDataset(tmp_path / "run" / "synthetic", "train")
+    assert result["synthetic_images"] == 6 and {repaired.cameras[o.view].width for o in repaired.observations} == {8}
 
 
 def test_pairs_are_the_unseen_images_against_the_truth(setup, tmp_path):

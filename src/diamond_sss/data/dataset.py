@@ -56,6 +56,15 @@ class Camera:
         """World-space camera centre ``[3]``."""
         return camera_centers(self.w2c)
 
+    def resized(self, scale: float) -> Camera:
+        """The camera of its image resized by ``scale`` (sides rounded, at least 1 pixel; intrinsics scaled by the
+        sides' actual ratios, :func:`~diamond_sss.data.conventions.scale_intrinsics`)."""
+        if scale == 1.0:
+            return self
+        width, height = max(1, round(self.width * scale)), max(1, round(self.height * scale))
+        K = scale_intrinsics(self.K, width / self.width, height / self.height)
+        return Camera(self.w2c, K, width, height, self.frame)
+
 
 @dataclass(frozen=True)
 class Light:

@@ -594,7 +594,9 @@ def repair_target_pairs(ctx: PipelineContext) -> list[tuple[int, int]]:
 
 
 def repair_stage(ctx: PipelineContext) -> dict:
-    """The preliminary reconstruction's renders at :func:`repair_target_pairs`, repaired, into ``<out>/repair``."""
+    """The preliminary reconstruction's renders at :func:`repair_target_pairs`, repaired, into ``<out>/repair``
+    (at the model's resolution when the capture's images are larger: the final reconstruction compares them with its
+    render area-downsampled to their size, as the novel views)."""
     from diamond_sss.diffusion.repair.inputs import RepairInputs
     from diamond_sss.diffusion.repair.pipeline import load_repair_model, repair_targets
 
@@ -606,7 +608,8 @@ def repair_stage(ctx: PipelineContext) -> dict:
         return {"images": 0, "why": why}
     model = load_repair_model(ctx.cfg.repair_model, ctx.cfg.device)
     scene = load_scene(ctx.prelim_dir, ctx.cfg.device)[0].eval()
-    builder = RepairInputs(scene, ctx.lattice, ctx.real, ctx.selection.observations)
+    builder = RepairInputs(scene, ctx.lattice, ctx.real, ctx.selection.observations,
+                           size=model.config.resolution)  # the model's size, at most the capture's
     repair_targets(model, builder, targets, ctx.out / "repair", show_progress=ctx.show_progress)
     return {"images": len(targets)}
 

@@ -25,9 +25,11 @@ def load_scene(run_dir: Path, device: str | torch.device = "cpu") -> tuple[Relig
     return read_scene(path, cfg.shading, device), cfg
 
 
-def render_lattice_image(scene: RelightableScene, lattice: OLATDataset, view: int, light: int) -> SceneRender:
-    """``scene`` rendered (no gradient) at camera ``view`` of ``lattice`` under its light ``light``."""
-    camera, lit, device = lattice.cameras[view], lattice.lights[light], scene.gaussians.means.device
+def render_lattice_image(scene: RelightableScene, lattice: OLATDataset, view: int, light: int,
+                         scale: float = 1.0) -> SceneRender:
+    """``scene`` rendered (no gradient) at camera ``view`` of ``lattice`` under its light ``light``; ``scale`` < 1
+    renders the camera's image resized by it (:meth:`~diamond_sss.data.dataset.Camera.resized`)."""
+    camera, lit, device = lattice.cameras[view].resized(scale), lattice.lights[light], scene.gaussians.means.device
     with torch.no_grad():
         return scene.render(camera.w2c[None].to(device), camera.K[None].to(device), camera.width, camera.height,
                             lit.position[None].to(device), lit.intensity[None].to(device))

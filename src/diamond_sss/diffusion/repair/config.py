@@ -20,11 +20,14 @@ class RepairModelConfig:
     one step from the render, not from noise).
 
     Attributes:
+        resolution: the longer image side (pixels) it was trained at: larger targets are made at this size
+            (:class:`~diamond_sss.diffusion.repair.inputs.RepairInputs`), as the novel-view prior's are.
         block_out_channels: widths per resolution level.
         layers_per_block: ResNet layers per level.
         norm_num_groups: GroupNorm groups.
     """
 
+    resolution: int = 64
     block_out_channels: tuple[int, ...] = (16, 32, 64)
     layers_per_block: int = 1
     norm_num_groups: int = 8
@@ -33,6 +36,8 @@ class RepairModelConfig:
         if not self.block_out_channels or any(c <= 0 or c % self.norm_num_groups for c in self.block_out_channels):
             raise ValueError(f"repair model: block_out_channels {self.block_out_channels} must be positive multiples "
                              f"of norm_num_groups {self.norm_num_groups}")
+        if self.resolution < 1:
+            raise ValueError(f"repair model: resolution must be >= 1 pixel, got {self.resolution}")
         if self.layers_per_block < 1:
             raise ValueError(f"repair model: layers_per_block must be >= 1, got {self.layers_per_block}")
 

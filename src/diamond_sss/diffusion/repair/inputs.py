@@ -11,6 +11,8 @@ For target view ``v`` and light ``l`` (``[23, H, W]``, :data:`~.config.INPUT_CHA
 
 ``x`` is the surface point the render's depth unprojects to; ``near`` / ``far`` the capture's depth range
 (:class:`~diamond_sss.data.dataset.SceneBounds`). Without a real image under ``l`` the warped channels are 0.
+With ``size`` the target is made at most ``size`` pixels on its longer side (the camera's image resized, the
+intrinsics scaled): the model's training size, so that it sees the object at the scale it learnt on.
 """
 
 from __future__ import annotations
@@ -59,8 +61,8 @@ class RepairInputs:
     once."""
 
     def __init__(self, scene: RelightableScene, lattice: OLATDataset, real: OLATDataset,
-                 real_indices: Sequence[int]) -> None:
-        self.scene, self.lattice, self.real = scene, lattice, real
+                 real_indices: Sequence[int], size: int | None = None) -> None:
+        self.scene, self.lattice, self.real, self.size = scene, lattice, real, size
         bounds = lattice.bounds
         self.center, self.radius, self.near, self.far = bounds.center, bounds.radius, bounds.near, bounds.far
         self.view_dirs = directions_from(lattice.camera_centers, self.center)
@@ -69,9 +71,15 @@ class RepairInputs:
             self.real_of_light.setdefault(real.observations[index].light, []).append(int(index))
         self._depth: dict[int, Tensor] = {}
 
+    def scale(self, view: int) -> float:
+        """The factor lattice view ``view``'s image is resized by for the model (1: its own size)."""
+        camera = self.lattice.cameras[view]
+        longer = max(camera.width, camera.height)
+        return 1.0 if self.size is None or longer <= self.size else self.size / longer
+
     def render(self, view: int, light: int) -> SceneRender:
-        """The scene rendered at lattice view ``view`` under lattice light ``light``."""
-        return render_lattice_image(self.scene, self.lattice, view, light)
+        """The scene rendered at lattice view ``view`` under lattice light ``light``, at the model's size."""
+        return render_lattice_image(self.scene, self.lattice, view, light, self.scale(view))
 
     def source(self, view: int, light: int) -> int | None:
         """The real image under ``light`` whose camera is nearest to ``view``'s in direction (``None``: none)."""
@@ -83,33 +91,39 @@ class RepairInputs:
         return candidates[int(torch.argmax(similarity))]
 
     def surface_depth(self, view: int) -> Tensor:
-        """The render's camera z at lattice view ``view`` where it has a surface, else 0: ``[1, H, W]``."""
+        """The render's camera z at lattice view ``view`` (its own size) where it has a surface, else 0:
+        ``[1, H, W]``."""
         if view not in self._depth:
-            g = self.render(view, 0).gbuffer
+            g = render_lattice_image(self.scene, self.lattice, view, 0).gbuffer
             self._depth[view] = torch.where(g.alpha[0, ..., 0] >= SURFACE_ALPHA, g.depth[0, ..., 0], 0.0)[None].cpu()
         return self._depth[view]
 
     def warped(self, view: int, light: int) -> Tensor:
         """The nearest real image under ``light`` warped into ``view``: sRGB (3) and validity (1), ``[4, H, W]``."""
-        camera = self.lattice.cameras[view]
+        w2c, K, width, height = self.camera(view)
         index = self.source(view, light)
         if index is None:
-            return torch.zeros(4, camera.height, camera.width)
+            return torch.zeros(4, height, width)
         sample = self.real.load(index)
         source = self.lattice.cameras[sample.view]
         reference = linear_to_srgb(sample.rgb.clamp(0, 1)).permute(2, 0, 1)
-        size = max(camera.width, camera.height)  # pixel intrinsics: a square canvas cropped to the image
-        image, valid = forward_warp(reference, self.surface_depth(sample.view), source.w2c, source.K,
-                                    camera.w2c[None], camera.K[None], size)
-        return torch.cat([image[0], valid[0]])[:, :camera.height, :camera.width].float()
+        size = max(width, height)  # pixel intrinsics: a square canvas cropped to the image
+        image, valid = forward_warp(reference, self.surface_depth(sample.view), source.w2c, source.K, w2c[None],
+                                    K[None], size)
+        return torch.cat([image[0], valid[0]])[:, :height, :width].float()
+
+    def camera(self, view: int) -> tuple[Tensor, Tensor, int, int]:
+        """``w2c``, ``K``, width and height of lattice view ``view`` at the model's size."""
+        camera = self.lattice.cameras[view].resized(self.scale(view))
+        return camera.w2c, camera.K, camera.width, camera.height
 
     def target(self, view: int, light: int) -> tuple[Tensor, SceneRender]:
         """The model's input ``[23, H, W]`` at lattice view ``view`` under lattice light ``light``, and the render
         it starts from."""
-        camera, lit = self.lattice.cameras[view], self.lattice.lights[light]
+        (w2c, K, width, height), lit = self.camera(view), self.lattice.lights[light]
         render = self.render(view, light)
-        channels = render_channels(render, camera.w2c.to(render.radiance.device), camera.K.to(render.radiance.device),
-                                   lit.position, self.near, self.far).cpu()
-        code = light_code(lit.position, camera.w2c, self.center, self.radius).float()
-        constant = code[:, None, None].expand(-1, camera.height, camera.width)
+        device = render.radiance.device
+        channels = render_channels(render, w2c.to(device), K.to(device), lit.position, self.near, self.far).cpu()
+        code = light_code(lit.position, w2c, self.center, self.radius).float()
+        constant = code[:, None, None].expand(-1, height, width)
         return torch.cat([channels, self.warped(view, light), constant]), render
