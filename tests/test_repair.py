@@ -14,6 +14,7 @@ from diamond_sss.cli.main import main
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture_with_test_split
 from diamond_sss.data.conventions import linear_to_srgb
+from diamond_sss.data.export import export_regime
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.diffusion.repair.config import INPUT_CHANNELS, RepairModelConfig, RepairTrainConfig
 from diamond_sss.diffusion.repair.data import RepairPairs, read_pair_metadata, target_image, write_pairs
@@ -218,3 +219,19 @@ def test_the_quality_benchmark_scores_the_renders_and_their_repairs(setup, tmp_p
     pairs = RepairPairs.read(list((tmp_path / "pairs").glob("*.safetensors")))
     assert row["pairs"] == 3 and row == {**row, **validation(RepairModel.load(model), pairs)}
     assert "| reconstruction | capture | pairs | render | repaired |" in capsys.readouterr().out
+
+
+def test_a_capture_of_only_its_sparse_images_gets_new_cameras_and_lights(setup, tmp_path):
+    """Three images of three views under three lights (an incomplete lattice): relighting alone would find targets
+    on it, but repair makes new views too, so the cameras and lights are placed around the real ones."""
+    data, _, _, model = setup
+    sparse = export_regime(data, tmp_path / "sparse", "images=3", seed=0).out
+    real = OLATDataset(sparse, "train")
+    assert len(real) == 3 and len(real) < real.num_views * real.num_lights
+    cfg = PipelineConfig(augment=("repair",), repair_model=str(model), rig_views=2, rig_lights=1, nvs_views=0,
+                         relight_lights=1, min_silhouette_iou=0.0, min_mask_fraction=0.0)
+    run_pipeline(sparse, tmp_path / "run", regime="all", overrides=TRAIN, config=cfg, show_progress=False)
+    manifest = json.loads((tmp_path / "run" / "pipeline.json").read_text())
+    assert manifest["inputs"]["lattice"] == "sampled"
+    views = {item["view"] for item in json.loads((tmp_path / "run" / "repair" / "manifest.json").read_text())}
+    assert views >= {real.num_views, real.num_views + 1}  # the two placed cameras

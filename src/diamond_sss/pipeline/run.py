@@ -409,9 +409,10 @@ def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, 
 
 def lattice_has_targets(real: OLATDataset, selection: RegimeSelection, augment: tuple[str, ...]) -> bool:
     """Whether every stage of ``augment`` has something to generate on the capture's own lattice: ``nvs`` a camera
-    the regime left out, ``relight`` a (view, light) pair the regime did not select."""
-    missing_images = len(selection.observations) < real.num_views * real.num_lights
-    needs = {"nvs": len(selection.views) < real.num_views, "relight": missing_images, "repair": missing_images}
+    the regime left out, ``relight`` a (view, light) pair the regime did not select, ``repair`` both."""
+    needs = {"nvs": len(selection.views) < real.num_views,
+             "relight": len(selection.observations) < real.num_views * real.num_lights}
+    needs["repair"] = needs["nvs"] and needs["relight"]  # it makes what both make: new views and new lights
     return all(needs[stage] for stage in augment)
 
 
