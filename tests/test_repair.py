@@ -170,11 +170,21 @@ def test_training_lowers_the_error_and_resumes_exactly(setup, tmp_path):
         train_repair([pairs_file], tmp_path / "none", RepairTrainConfig(validation_files=1))
 
 
-def test_run_with_augment_repair_makes_the_images_the_paper_stages_would(setup, tmp_path, capsys):
+def test_run_with_augment_repair_makes_the_images_the_paper_stages_would(setup, tmp_path, capsys, monkeypatch):
+    import diamond_sss.pipeline.run as pipeline_run
+
     data, _, _, model = setup
+    weights, train_run = {}, pipeline_run.train_run
+
+    def recorded(data, out, config, **kwargs):
+        weights[out.name] = [source.weight for source in kwargs.get("extra_sources", ())]
+        return train_run(data, out, config, **kwargs)
+
+    monkeypatch.setattr(pipeline_run, "train_run", recorded)
     cfg = PipelineConfig(augment=("repair",), repair_model=str(model), nvs_views=2, relight_lights=1,
-                         min_silhouette_iou=0.0, min_mask_fraction=0.0)
+                         min_silhouette_iou=0.0, min_mask_fraction=0.0, synthetic_weight=0.75, min_real_share=0.0)
     result = run_pipeline(data, tmp_path, regime=REGIME, overrides=TRAIN, config=cfg)
+    assert weights["final"] == [0.75]  # repaired images weigh synthetic_weight, as generated ones
     assert re.search(r"repair: 100%\|[^|]*\| 1/1 ", capsys.readouterr().err)
     manifest = json.loads((tmp_path / "pipeline.json").read_text())
     assert list(manifest["stages"]) == ["prelim", "repair", "final", "eval"]

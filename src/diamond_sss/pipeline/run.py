@@ -13,6 +13,8 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
 3. ``relight``  every real and generated view relit to the lattice lights it lacks (the ``relight_lights``
                 spread ones when capped), from the view's first light, geometry rendered from the preliminary
                 reconstruction;
+   ``repair``   (in place of 2 and 3, beyond the paper) the preliminary reconstruction's renders at the same
+                targets, repaired (:mod:`~diamond_sss.diffusion.repair`);
 4. ``final``    the reconstruction on real images (photometric weight 1) and generated ones (weight
                 ``synthetic_weight``, times each image's agreement factor with the preliminary reconstruction
                 when ``agreement_power`` > 0, :mod:`~diamond_sss.pipeline.agreement`; geometric losses at full
