@@ -22,7 +22,8 @@ from diamond_sss.diffusion.repair.inputs import RepairInputs
 from diamond_sss.diffusion.repair.model import RepairModel
 from diamond_sss.diffusion.repair.train import train_repair, validation
 from diamond_sss.errors import DataError
-from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
+from diamond_sss.pipeline.config import REPAIR_ROUNDS
+from diamond_sss.pipeline.run import PipelineConfig, checked_config, run_pipeline
 from diamond_sss.runs.folder import load_scene
 from diamond_sss.training.run import train_from_preset
 from diamond_sss.utils.io import read_json
@@ -245,3 +246,9 @@ def test_a_capture_of_only_its_sparse_images_gets_new_cameras_and_lights(setup, 
     assert manifest["inputs"]["lattice"] == "sampled"
     views = {item["view"] for item in json.loads((tmp_path / "run" / "repair" / "manifest.json").read_text())}
     assert views >= {real.num_views, real.num_views + 1}  # the two placed cameras
+
+
+def test_repair_runs_two_rounds_unless_told_and_the_paper_stages_one():
+    assert checked_config(PipelineConfig(augment=("repair",))).rounds == REPAIR_ROUNDS == 2
+    assert checked_config(PipelineConfig(augment=("repair",), rounds=1)).rounds == 1
+    assert checked_config(PipelineConfig()).rounds == 1 and checked_config(PipelineConfig(augment=())).rounds == 1

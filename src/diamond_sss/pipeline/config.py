@@ -10,6 +10,11 @@ AUGMENTS = ("nvs", "relight", "repair")
 """The diffusion stages, in the order they run: the paper's two (``nvs``, ``relight``), or ``repair`` alone (issue
 59, beyond the paper: the preliminary reconstruction's renders at the same targets, repaired by one model)."""
 
+REPAIR_ROUNDS = 2
+"""Default rounds of ``--augment repair``: on held-out objects at 9 images a second round (repairing the first
+final reconstruction's renders) gained +1.10 / +0.40 dB on the deciding objects, +0.19 / +0.75 on the reporting
+ones (session 44, ``benchmarks/RESULTS.md``)."""
+
 SHORT_RUN_PRELIM_PRESET = "sss3dgs"
 """Preset of a short run's preliminary reconstruction (``diamond-sss run --short-run``), as the demo and
 ``benchmarks/regimes.py`` train it: SSS-3DGS on the regime's real images, whose run is also their baseline row."""
@@ -28,9 +33,10 @@ class PipelineConfig:
                                                 "sss3dgs)")
     prelim_run: str | None = described(None, "a finished reconstruction of the same real images (a `train` run "
                                              "folder with this regime and seed) reused as the preliminary one")
-    rounds: int = described(1, "rounds of the pipeline: each round after the first takes the previous round's "
-                               "final reconstruction (in <out>/round<k>) as its preliminary one and generates its "
-                               "images again from that geometry")
+    rounds: int | None = described(None, "rounds of the pipeline: each round after the first takes the previous "
+                                         "round's final reconstruction (in <out>/round<k>) as its preliminary one "
+                                         "and generates its images again from that geometry (default: 2 with "
+                                         "--augment repair, measured on held-out objects; else 1)")
     rig: str | None = described(None, "a light stage's full layout (a transforms file with top-level cameras and "
                                       "lights, no images) whose cameras and lights the diffusion stages target; "
                                       "default: the capture's own lattice when the regime leaves some of its cameras "

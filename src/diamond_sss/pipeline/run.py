@@ -53,7 +53,7 @@ from diamond_sss.evaluation.metrics import mask_iou
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.pipeline.agreement import agreement_factors, render_errors
 from diamond_sss.pipeline.capture import GeneratedImage, check_on_lattice, write_capture
-from diamond_sss.pipeline.config import AUGMENTS, PipelineConfig
+from diamond_sss.pipeline.config import AUGMENTS, REPAIR_ROUNDS, PipelineConfig
 from diamond_sss.pipeline.rig import LatticeSource, build_lattice
 from diamond_sss.runs.folder import load_scene, render_lattice_image
 from diamond_sss.training.config import PIPELINE_KEYS, TrainConfig
@@ -309,8 +309,9 @@ class PipelineContext:
 
 
 def checked_config(config: PipelineConfig | None) -> PipelineConfig:
-    """``config`` (default: the defaults) once its values are checked and a ``device`` of ``auto`` resolved (CUDA when
-    available, else CPU); a bad value is a ``ValueError`` naming the key."""
+    """``config`` (default: the defaults) once its values are checked, ``rounds`` given its default for the stages
+    (:data:`~diamond_sss.pipeline.config.REPAIR_ROUNDS` with ``repair``, else 1) and a ``device`` of ``auto`` resolved
+    (CUDA when available, else CPU); a bad value is a ``ValueError`` naming the key."""
     cfg = config or PipelineConfig()
     unknown = set(cfg.augment) - set(AUGMENTS)
     if unknown:
@@ -322,6 +323,8 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
         raise ValueError(f"pipeline config 'min_real_share' must be in [0, 1), got {cfg.min_real_share}")
     if not (math.isfinite(cfg.generated_as_real) and cfg.generated_as_real > 0.0):
         raise ValueError(f"pipeline config 'generated_as_real' must be a finite number > 0, got {cfg.generated_as_real}")
+    if cfg.rounds is None:
+        cfg = replace(cfg, rounds=REPAIR_ROUNDS if "repair" in cfg.augment else 1)
     if isinstance(cfg.rounds, bool) or not isinstance(cfg.rounds, int) or cfg.rounds < 1:
         raise ValueError(f"pipeline config 'rounds' must be an integer >= 1, got {cfg.rounds!r}")
     if cfg.rounds > 1 and not cfg.augment:
