@@ -42,6 +42,11 @@ def test_run_reaches_every_pipeline_field_with_the_configs_defaults(tmp_path, ca
         relight_samples=2, device="cuda")
     assert captured_pipeline["overrides"] == {"losses.lambda_dssim": 0.3, "schedule.iterations": 7}
     assert captured_pipeline["seed"] == 3
+    capsys.readouterr()
+    main(base)  # --augment auto: the stages it picked, and why
+    said = capsys.readouterr().out
+    assert f"--augment auto -> {','.join(captured_pipeline['config'].augment)}: the paper's stages" in said
+    assert "--augment auto" not in (main([*base, "--augment", "none"]) or capsys.readouterr().out)
 
 
 def test_options_of_keeps_names_types_defaults_and_help():

@@ -32,7 +32,8 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         out: pipeline folder.
         split: training split.
         regime: capture regime of the real images (e.g. views=5%,lights=5%).
-        augment: auto (the stages whose model ships with the package) | none | nvs | relight | nvs,relight.
+        augment: auto (the paper stages whose model ships with the package; it says why) | none | nvs | relight |
+            nvs,relight | repair (beyond the paper: the renders repaired, docs/pipeline.md).
         iterations: training steps of each reconstruction (default: 1000 under --preset auto, the preset's
             otherwise); the short-run settings' or the named preset's step-valued keys are scaled by iterations /
             their iterations, as `diamond-sss train --iterations` does.
@@ -51,7 +52,7 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         quiet: no progress bars.
         pipeline: the pipeline's settings (PipelineConfig).
     """
-    from diamond_sss.pipeline.run import parse_augment, run_pipeline
+    from diamond_sss.pipeline.run import AUTO_AUGMENT_WHY, parse_augment, run_pipeline
     from diamond_sss.training.config import AUTO_PRESET
     from diamond_sss.training.overrides import parse_sets
 
@@ -71,6 +72,8 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         said = (f"final reconstruction ({preset}): {said}\npreliminary reconstruction ({cfg.prelim_preset}): the same "
                 f"settings" + (f" without {final_only}" if final_only else "")
                 + (" (not trained: --prelim-run gives it)" if cfg.prelim_run else ""))
+    if augment.strip() == "auto":
+        said = "\n".join(filter(None, [said, f"--augment auto -> {','.join(cfg.augment) or 'none'}: {AUTO_AUGMENT_WHY}"]))
     if said:
         Console(soft_wrap=True).print(said)
     result = run_pipeline(data, out, split=split, regime=regime, preset=preset, overrides=overrides,

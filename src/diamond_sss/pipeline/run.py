@@ -201,8 +201,15 @@ def shipped_augments() -> tuple[str, ...]:
     return tuple(available)
 
 
+AUTO_AUGMENT_WHY = ("the paper's stages: on held-out objects of another rig they scored 0.12 dB under --augment "
+                    "repair at 9 images (a tie) and above it at 1 round; at 30 images the two tie and repair "
+                    "generates 7x faster (benchmarks/RESULTS.md, session 44)")
+"""Why ``--augment auto`` picks the paper's stages (``diamond-sss run`` prints it)."""
+
+
 def parse_augment(text: str) -> tuple[str, ...]:
-    """``auto`` (the stages whose model ships), ``none`` or a comma list of ``nvs`` / ``relight``."""
+    """``auto`` (the paper's stages whose model ships: :data:`AUTO_AUGMENT_WHY`), ``none`` or a comma list of
+    ``nvs`` / ``relight``, or ``repair``."""
     text = text.strip()
     if text == "auto":
         return shipped_augments()
