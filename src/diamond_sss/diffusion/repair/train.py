@@ -29,14 +29,11 @@ from diamond_sss.diffusion.common.runtime import (
     fused_adamw,
     make_accelerator,
 )
-from diamond_sss.diffusion.relight.train import lr_factor, step_generator
+from diamond_sss.diffusion.relight.train import RESUMABLE, lr_factor, step_generator
 from diamond_sss.diffusion.repair.config import RepairTrainConfig
 from diamond_sss.diffusion.repair.data import RepairPairs
 from diamond_sss.diffusion.repair.model import RepairModel
 from diamond_sss.utils.io import atomic_write_json, sha256_file, sha256_json
-
-RESUMABLE = ("checkpoint_every", "keep_checkpoints", "log_every", "time_limit_s")
-"""Settings a resumed run may change (not ``steps``: the learning rate's decay spans them)."""
 
 
 def repair_loss(model: RepairModel, inputs: Tensor, targets: Tensor, alpha_weight: float) -> tuple[Tensor, dict]:
