@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 
 import pytest
 import torch
 from repo_scripts import load_script
+from safetensors.torch import save_file
 
 from diamond_sss.cli.main import main
 from diamond_sss.data import OLATDataset
@@ -252,3 +254,33 @@ def test_repair_runs_two_rounds_unless_told_and_the_paper_stages_one():
     assert checked_config(PipelineConfig(augment=("repair",))).rounds == REPAIR_ROUNDS == 2
     assert checked_config(PipelineConfig(augment=("repair",), rounds=1)).rounds == 1
     assert checked_config(PipelineConfig()).rounds == 1 and checked_config(PipelineConfig(augment=())).rounds == 1
+
+
+def test_bad_pair_files_and_run_folders_are_named(setup, tmp_path):
+    _, run, pairs_file, _ = setup
+    damaged = tmp_path / "damaged.safetensors"
+    damaged.write_bytes(pairs_file.read_bytes()[:200])
+    for read in (lambda p: RepairPairs.read([p]), read_pair_metadata):
+        with pytest.raises(DataError, match=r"damaged\.safetensors: damaged or truncated"):
+            read(damaged)
+        with pytest.raises(DataError, match=r"missing\.safetensors: .*missing"):
+            read(tmp_path / "missing.safetensors")
+    pairs = RepairPairs.read([pairs_file])
+    nan = tmp_path / "nan.safetensors"
+    save_file({"inputs": pairs.inputs.clone().index_fill_(0, torch.tensor([0]), float("nan")).half(),
+               "targets": pairs.targets.half()}, str(nan))
+    with pytest.raises(DataError, match=r"nan\.safetensors: holds a non-finite value"):
+        RepairPairs.read([nan])
+    narrow = tmp_path / "narrow.safetensors"
+    save_file({"inputs": pairs.inputs[:, :5].contiguous(), "targets": pairs.targets}, str(narrow))
+    with pytest.raises(DataError, match=r"narrow\.safetensors: inputs of 5 and targets of 4 channels, expected 23"):
+        RepairPairs.read([narrow])
+    broken = tmp_path / "broken_run"
+    shutil.copytree(run, broken)
+    (broken / "regime.json").write_text(json.dumps({"views": [0]}))
+    with pytest.raises(DataError, match=r"regime\.json: no 'observations' list"):
+        write_pairs(broken, tmp_path / "x.safetensors")
+    (broken / "regime.json").write_text("{not json")
+    with pytest.raises(DataError, match=r"regime\.json: damaged or invalid JSON"):
+        write_pairs(broken, tmp_path / "x.safetensors")
+    assert not (tmp_path / "x.safetensors").exists()

@@ -8,23 +8,23 @@ reconstruction. :class:`RepairPairs` reads several and draws seeded batches of r
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from safetensors import safe_open
+from safetensors import SafetensorError, safe_open
 from torch import Tensor
 from tqdm.auto import tqdm
 
 from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.data.dataset import OLATDataset
+from diamond_sss.diffusion.repair.config import INPUT_CHANNELS, OUTPUT_CHANNELS
 from diamond_sss.diffusion.repair.inputs import RepairInputs
-from diamond_sss.errors import DataError
+from diamond_sss.errors import DamagedFileError, DataError
 from diamond_sss.runs.folder import load_scene
-from diamond_sss.utils.io import atomic_save_safetensors, read_json, sha256_file
+from diamond_sss.utils.io import atomic_save_safetensors, load_safetensors, read_json, sha256_file
 
 
 def target_image(dataset: OLATDataset, index: int) -> Tensor:
@@ -57,7 +57,11 @@ def write_pairs(run: Path, out: Path, *, data: Path | None = None, split: str = 
         data = Path(recorded["data"])
     scene, cfg = load_scene(run)
     dataset = OLATDataset(data, split, downscale=cfg.runtime.downscale)
-    seen = [int(i) for i in read_json(regime_file)["observations"]]
+    recorded_regime = read_json(regime_file)
+    if not (isinstance(recorded_regime, dict) and isinstance(recorded_regime.get("observations"), list)):
+        raise DataError(f"{regime_file}: no 'observations' list (the images the run saw); is it a `diamond-sss "
+                        "train` run folder?")
+    seen = [int(i) for i in recorded_regime["observations"]]
     if max(seen, default=-1) >= len(dataset.observations):
         raise DataError(f"{regime_file}: observation {max(seen)} is not in {dataset.json_path} "
                         f"({len(dataset.observations)} images): the run was trained on another capture")
@@ -78,8 +82,13 @@ def write_pairs(run: Path, out: Path, *, data: Path | None = None, split: str = 
 
 def read_pair_metadata(path: str | os.PathLike) -> dict[str, str]:
     """The metadata :func:`write_pairs` recorded in ``path``."""
-    with safe_open(str(path), framework="pt") as handle:
-        return dict(handle.metadata() or {})
+    if not Path(path).is_file():
+        raise DataError(f"{path}: pair file is missing")
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            return dict(handle.metadata() or {})
+    except (SafetensorError, OSError) as exc:
+        raise DamagedFileError(f"{path}: damaged or truncated pair file ({exc})") from exc
 
 
 @dataclass
@@ -97,12 +106,16 @@ class RepairPairs:
             raise DataError("repair pairs: no pair file given")
         inputs, targets = [], []
         for path in paths:
-            with safe_open(str(path), framework="pt") as handle:
-                keys = set(handle.keys())
-                if keys != {"inputs", "targets"}:
-                    raise DataError(f"{path}: not a repair pair file (keys {sorted(keys)}, expected inputs, targets)")
-                inputs.append(handle.get_tensor("inputs").float())
-                targets.append(handle.get_tensor("targets").float())
+            tensors = load_safetensors(path)
+            if set(tensors) != {"inputs", "targets"}:
+                raise DataError(f"{path}: not a repair pair file (keys {sorted(tensors)}, expected inputs, targets)")
+            inputs.append(tensors["inputs"].float())
+            targets.append(tensors["targets"].float())
+            if inputs[-1].shape[1] != INPUT_CHANNELS or targets[-1].shape[1] != OUTPUT_CHANNELS:
+                raise DataError(f"{path}: inputs of {inputs[-1].shape[1]} and targets of {targets[-1].shape[1]} "
+                                f"channels, expected {INPUT_CHANNELS} and {OUTPUT_CHANNELS}")
+            if not (torch.isfinite(inputs[-1]).all() and torch.isfinite(targets[-1]).all()):
+                raise DataError(f"{path}: holds a non-finite value (NaN or inf); write it again with repair-data")
             if inputs[-1].shape[-2:] != inputs[0].shape[-2:]:
                 raise DataError(f"{path}: {tuple(inputs[-1].shape[-2:])} images, the first file's are "
                                 f"{tuple(inputs[0].shape[-2:])}")
@@ -129,7 +142,3 @@ class RepairPairs:
 
         return window(inputs), window(targets)
 
-
-def describe(paths: Sequence[str | os.PathLike]) -> str:
-    """One line per pair file: its pairs and reconstruction (for logs)."""
-    return "\n".join(f"{path}: {json.dumps(read_pair_metadata(path))}" for path in paths)
