@@ -68,13 +68,9 @@ def repair_train(
     from diamond_sss.diffusion.repair.model import RepairModel
     from diamond_sss.diffusion.repair.train import train_repair
 
-    network = RepairModel.load(init) if init is not None else None
-    if network is None:
-        import torch
-
-        torch.manual_seed(training.seed)
-        network = RepairModel(config_from(RepairModelConfig, model))
     console = Console()
-    folder = train_repair(pairs, out, config_from(RepairTrainConfig, training), model=network, resume=resume,
+    folder = train_repair(pairs, out, config_from(RepairTrainConfig, training),
+                          model=RepairModel.load(init) if init is not None else None,
+                          model_config=config_from(RepairModelConfig, model), resume=resume,
                           log=(lambda _: None) if quiet else console.print)
     console.print(f"repair model -> {folder}")

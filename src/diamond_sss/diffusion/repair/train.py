@@ -30,7 +30,7 @@ from diamond_sss.diffusion.common.runtime import (
     make_accelerator,
 )
 from diamond_sss.diffusion.relight.train import RESUMABLE, lr_factor, step_generator
-from diamond_sss.diffusion.repair.config import RepairTrainConfig
+from diamond_sss.diffusion.repair.config import RepairModelConfig, RepairTrainConfig
 from diamond_sss.diffusion.repair.data import RepairPairs
 from diamond_sss.diffusion.repair.model import RepairModel
 from diamond_sss.utils.io import atomic_write_json, sha256_file, sha256_json
@@ -64,8 +64,9 @@ def validation(model: RepairModel, pairs: RepairPairs, chunk: int = 32) -> dict[
 
 @deterministic_kernels
 def train_repair(pair_files: Sequence[str | os.PathLike], out: str | os.PathLike, config: RepairTrainConfig,
-                 model: RepairModel | None = None, resume: bool = True, log: Callable[[str], None] = print) -> Path:
-    """Train ``model`` (default: a new one, seeded) on the pairs of ``pair_files`` but the first
+                 model: RepairModel | None = None, model_config: RepairModelConfig | None = None,
+                 resume: bool = True, log: Callable[[str], None] = print) -> Path:
+    """Train ``model`` (default: a new one of ``model_config``, seeded by ``config.seed``) on the pairs of ``pair_files`` but the first
     ``validation_files``; returns ``out/model`` (the EMA weights). The run folder is the fine-tunes' common one."""
     check_loop_settings(config)
     files = [str(Path(p).resolve()) for p in pair_files]
@@ -73,8 +74,9 @@ def train_repair(pair_files: Sequence[str | os.PathLike], out: str | os.PathLike
     if not used:
         raise ValueError(f"repair training: {len(files)} pair file(s), all held out for validation "
                          f"(validation_files {config.validation_files}); give more")
-    torch.manual_seed(config.seed)
-    model = model or RepairModel()
+    if model is None:
+        torch.manual_seed(config.seed)
+        model = RepairModel(model_config)
     out = Path(out)
     settings = {**asdict(config), "model": asdict(model.config), "train_files": used, "validation_files": held,
                 "data_hash": sha256_json([sha256_file(f) for f in files])}
