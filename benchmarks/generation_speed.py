@@ -1,13 +1,14 @@
 """The diffusion stages of a sparse pipeline timed alone and beside a training run (issue 60).
 
-For each --threads value (torch's intra-op threads; 0: torch's default, all cores) and each condition (`alone`;
-`beside`: a 1-thread `diamond-sss train` process on the same capture meanwhile), the novel-view and the relighting
-stage of `diamond-sss run` (`pipeline.run.nvs_stage`, `relight_stage`, the silhouette filter between them) generate
-into a fresh cache and are timed. The preliminary reconstruction is --prelim-run, a finished run on the capture and
+For each --threads value (the pipeline's `generation_threads`: `auto`, its default, the cores other processes leave
+idle when a stage starts; 0: torch's default, all cores; N: N threads) and each condition (`alone`; `beside`: a
+1-thread `diamond-sss train` process on the same capture meanwhile), the novel-view and the relighting stage of
+`diamond-sss run` (`pipeline.run.nvs_stage`, `relight_stage`, the silhouette filter between them, each as the
+pipeline runs it, `pipeline.run.threaded`) generate into a fresh cache and are timed. The preliminary reconstruction is --prelim-run, a finished run on the capture and
 regime, or is trained once into --work (`sss3dgs`, the short schedule). Targets: both stages <= 30 s on the 2-core
 CPU alone and <= 2x that beside a training run; <= 5 s on a GPU, never slower than on the CPU.
 
-    python benchmarks/generation_speed.py --threads 0 1 --beside-training      # the demo object, 9 images
+    python benchmarks/generation_speed.py --threads auto 0 1 --beside-training      # the demo object, 9 images
     python benchmarks/generation_speed.py --data CAPTURE --regime all --prelim-run RUN
 
 Writes generation_speed.json and generation_speed.md to --results.
@@ -35,11 +36,11 @@ from diamond_sss.pipeline.run import (
     nvs_stage,
     prepare_run,
     relight_stage,
+    threaded,
     write_relight_sources,
 )
 from diamond_sss.training.config import short_schedule
 from diamond_sss.training.run import train_from_preset
-from diamond_sss.utils.device import cpu_threads
 
 RESULTS = Path(__file__).resolve().parent / "results" / "generation_speed"
 WORK = Path("outputs") / "benchmarks" / "generation_speed"
@@ -74,21 +75,31 @@ def time_stages(data: Path, regime: str, prelim_run: Path, work: Path, config: P
     ctx, _ = prepare_run(data, work / "out", split="train", regime=regime, preset="diamond",
                          overrides=short_schedule(1000, pipeline_final=True), seed=0, cfg=cfg, show_progress=False)
     started = time.perf_counter()
-    nvs = nvs_stage(ctx)
+    nvs = threaded(cfg, "novel views", lambda: nvs_stage(ctx))
     between = time.perf_counter()
     kept = SilhouetteFilter(ctx).keep(nvs_images(ctx))
-    relight = relight_stage(ctx, write_relight_sources(ctx, kept))
+    sources = write_relight_sources(ctx, kept)
+    relight = threaded(cfg, "relighting", lambda: relight_stage(ctx, sources))
     ended = time.perf_counter()
     return {"nvs_s": between - started, "relight_s": ended - between, "both_s": ended - started,
             "images": len(kept) + relight["images"], "nvs_calls": nvs.get("calls", 0), "relit": relight["images"]}
 
 
-def run(data: Path, regime: str, prelim_run: Path | None, work: Path, results: Path, threads: list[int],
+def threads_value(text: str) -> int | None:
+    """A --threads value: ``auto`` (``None``, the pipeline's default) or a count >= 0."""
+    if text == "auto":
+        return None
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"--threads takes auto or a count >= 0 (0: torch's default), got {text!r}")
+    return int(text)
+
+
+def run(data: Path, regime: str, prelim_run: Path | None, work: Path, results: Path, threads: list[int | None],
         conditions: list[str], config: PipelineConfig | None = None) -> list[dict]:
     """Every (threads, condition) row, written to ``results`` as JSON and Markdown; ``config``: the pipeline's
     settings (default: its defaults, the shipped models)."""
-    if any(count < 0 for count in threads):
-        raise ValueError(f"--threads must be >= 0 (0: torch's default), got {threads}")
+    if any(count is not None and count < 0 for count in threads):
+        raise ValueError(f"--threads must be auto or >= 0 (0: torch's default), got {threads}")
     if prelim_run is None:
         prelim_run = work / "prelim"
         train_from_preset(data, prelim_run, preset="sss3dgs", overrides=short_schedule(1000), regime=regime,
@@ -97,8 +108,9 @@ def run(data: Path, regime: str, prelim_run: Path | None, work: Path, results: P
     for count in threads:
         for condition in conditions:
             command = training_command(data, work / "background") if condition == "beside" else None
-            with beside(command), cpu_threads(count):
-                row = time_stages(data, regime, prelim_run, work / "stages", config or PipelineConfig())
+            with beside(command):
+                row = time_stages(data, regime, prelim_run, work / "stages",
+                                  replace(config or PipelineConfig(), generation_threads=count))
             rows.append({"threads": count, "condition": condition, **row})
             print(json.dumps(rows[-1]), flush=True)
     results.mkdir(parents=True, exist_ok=True)
@@ -106,7 +118,7 @@ def run(data: Path, regime: str, prelim_run: Path | None, work: Path, results: P
     (results / "generation_speed.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
     lines = [f"Diffusion stages of `diamond-sss run` on {data} (`{regime}`), fresh cache.", "", HEADER,
              "|---|---|---|---|---|---|"]
-    lines += [f"| {r['threads'] or 'default'} | {r['condition']} | {r['nvs_s']:.1f} | {r['relight_s']:.1f} | "
+    lines += [f"| {'auto' if r['threads'] is None else r['threads'] or 'default'} | {r['condition']} | {r['nvs_s']:.1f} | {r['relight_s']:.1f} | "
               f"{r['both_s']:.1f} | {r['images']} |" for r in rows]
     (results / "generation_speed.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
@@ -119,7 +131,7 @@ def main() -> None:
     parser.add_argument("--regime", default="views=3,lights=3")
     parser.add_argument("--prelim-run", type=Path, default=None,
                         help="a finished reconstruction of the regime's images (default: trained into --work)")
-    parser.add_argument("--threads", nargs="+", type=int, default=[0, 1])
+    parser.add_argument("--threads", nargs="+", type=threads_value, default=[None, 0, 1])
     parser.add_argument("--beside-training", action="store_true", help="also time beside a 1-thread training run")
     parser.add_argument("--work", type=Path, default=WORK)
     parser.add_argument("--results", type=Path, default=RESULTS)

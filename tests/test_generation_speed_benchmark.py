@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
@@ -58,6 +59,12 @@ def test_the_background_process_runs_inside_the_block_and_not_after(tmp_path):
 
 
 def test_negative_threads_are_refused_before_anything_runs(tmp_path):
-    with pytest.raises(ValueError, match=r"--threads must be >= 0"):
+    with pytest.raises(ValueError, match=r"--threads must be auto or >= 0"):
         generation_speed.run(tmp_path / "none", "all", None, tmp_path / "work", tmp_path / "results", [-1], ["alone"])
     assert not (tmp_path / "work").exists() and not (tmp_path / "results").exists()
+
+
+def test_threads_are_auto_or_a_count():
+    assert generation_speed.threads_value("auto") is None and generation_speed.threads_value("2") == 2
+    with pytest.raises(argparse.ArgumentTypeError, match=r"--threads takes auto or a count >= 0.*'-1'"):
+        generation_speed.threads_value("-1")

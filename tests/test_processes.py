@@ -8,7 +8,13 @@ import time
 
 import pytest
 
-from diamond_sss.utils.processes import BackgroundCall, ChildProgress, usable_cores
+from diamond_sss.utils.processes import (
+    BackgroundCall,
+    ChildProgress,
+    idle_cpu_cores,
+    threads_for_idle,
+    usable_cores,
+)
 
 
 def test_the_result_comes_back():
@@ -63,3 +69,19 @@ def test_a_process_killed_by_a_signal_is_an_error_naming_the_signal():
     os.kill(call.process.pid, signal.SIGKILL)
     with pytest.raises(RuntimeError, match=r"a sleep: .*killed by signal 9"):
         call.result()
+
+
+def test_idle_cores_are_what_the_other_processes_leave_of_this_ones_cpus(monkeypatch):
+    import psutil
+
+    monkeypatch.setattr(psutil, "cpu_percent", lambda interval, percpu: [100.0, 30.0, 0.0, 50.0])
+    if hasattr(os, "sched_getaffinity"):
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 3})  # cpu 2 is not this process's
+    else:
+        monkeypatch.setattr(os, "cpu_count", lambda: 3)
+    idle, usable = idle_cpu_cores()
+    assert usable == 3 and idle == pytest.approx(0.0 + 0.7 + 0.5)
+
+
+def test_threads_take_the_idle_cores_rounded_and_at_least_one():
+    assert [threads_for_idle(idle) for idle in (0.0, 0.4, 1.3, 1.5, 1.6, 2.0, 7.8)] == [1, 1, 1, 2, 2, 2, 8]

@@ -284,3 +284,30 @@ def test_bad_pair_files_and_run_folders_are_named(setup, tmp_path):
     with pytest.raises(DataError, match=r"regime\.json: damaged or invalid JSON"):
         write_pairs(broken, tmp_path / "x.safetensors")
     assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_the_repair_stage_runs_on_the_idle_cores_says_so_and_makes_the_same_images_on_any_count(setup, tmp_path,
+                                                                                                  capsys, monkeypatch):
+    import diamond_sss.pipeline.run as pipeline_run
+
+    data, _, _, model = setup
+    monkeypatch.setattr(pipeline_run, "idle_cpu_cores", lambda: (1.3, 2))  # another job holds most of a core
+    seen, repair_stage = [], pipeline_run.repair_stage
+
+    def counted(ctx):
+        seen.append(torch.get_num_threads())
+        return repair_stage(ctx)
+
+    monkeypatch.setattr(pipeline_run, "repair_stage", counted)
+    threads, images = torch.get_num_threads(), {}
+    for name, count in (("idle", None), ("two", 2)):
+        cfg = PipelineConfig(augment=("repair",), repair_model=str(model), nvs_views=2, relight_lights=1, rounds=1,
+                             min_silhouette_iou=0.0, min_mask_fraction=0.0, generation_threads=count, device="cpu")
+        run_pipeline(data, tmp_path / name, regime=REGIME, overrides=TRAIN, config=cfg, show_progress=False)
+        folder = tmp_path / name / "repair"
+        images[name] = {str(path.relative_to(folder)): path.read_bytes() for path in sorted(folder.rglob("*.png"))}
+    assert seen == [1, 2] and torch.get_num_threads() == threads  # restored after each stage
+    assert "repair: 1 CPU thread (1.3 of 2 cores idle; --generation-threads sets it)" in capsys.readouterr().out
+    assert len(images["idle"]) == 12 and images["idle"] == images["two"]  # 6 images, 6 masks: not a byte changes
+    with pytest.raises(ValueError, match=r"'generation_threads' \(--generation-threads\) must be >= 0"):
+        checked_config(PipelineConfig(generation_threads=-1))

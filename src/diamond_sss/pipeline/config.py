@@ -86,5 +86,9 @@ class PipelineConfig:
                                               "real images, 0.77 at 30")
     cache_dir: str | None = described(None, "cache of generated images (default: ~/.cache/diamond_sss or "
                                             "$DIAMOND_SSS_CACHE)")
+    generation_threads: int | None = described(None, "torch CPU threads of the generation stages (novel views, "
+                                                      "relighting, repair) on a CPU: default the cores other "
+                                                      "processes leave idle when the stage starts (at least 1); 0: "
+                                                      "torch's default (every core)")
     device: str = described("auto", "auto (CUDA when available, else CPU) | cpu | cuda[:i] for the diffusion models "
                                     "(reconstructions use --set device=...)")

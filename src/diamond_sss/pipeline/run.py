@@ -60,8 +60,9 @@ from diamond_sss.training.config import PIPELINE_KEYS, TrainConfig
 from diamond_sss.training.overrides import make_config, rescheduled, with_values
 from diamond_sss.training.run import train_run
 from diamond_sss.training.trainer import ImageSource
-from diamond_sss.utils.device import resolve_device
+from diamond_sss.utils.device import cpu_threads, resolve_device
 from diamond_sss.utils.io import atomic_write_json, move_aside, sha256_file, sha256_json
+from diamond_sss.utils.processes import idle_cpu_cores, threads_for_idle
 
 if TYPE_CHECKING:
     from diamond_sss.diffusion.geometry import GeometrySource
@@ -91,10 +92,10 @@ def read_manifest(path: Path) -> dict:
 
 _MISSING = object()
 
-UNCOMPARED_SETTINGS = ("device", "cache_dir")
-"""Pipeline settings that ``pipeline.json`` records but a resumed run may change: where the diffusion models run
-and where their outputs are cached do not change the images (up to CUDA's rounding), so a killed run can move
-from the CPU to a GPU or to another cache."""
+UNCOMPARED_SETTINGS = ("device", "cache_dir", "generation_threads")
+"""Pipeline settings that ``pipeline.json`` records but a resumed run may change: where the diffusion models run,
+on how many CPU threads, and where their outputs are cached do not change the images (up to CUDA's rounding; the
+thread count not by a byte, tested), so a killed run can move from the CPU to a GPU or to another cache."""
 
 
 def compared_inputs(inputs: Any) -> Any:
@@ -348,6 +349,9 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
         if getattr(cfg, key) < least:
             raise ValueError(f"pipeline config '{key}' (--{key.replace('_', '-')}) must be an integer >= {least}, "
                              f"got {getattr(cfg, key)}")
+    if cfg.generation_threads is not None and cfg.generation_threads < 0:
+        raise ValueError(f"pipeline config 'generation_threads' (--generation-threads) must be >= 0 (0: torch's "
+                         f"default), or not given (the idle cores), got {cfg.generation_threads}")
     if not (math.isfinite(cfg.agreement_power) and cfg.agreement_power >= 0.0):
         raise ValueError(f"pipeline config 'agreement_power' must be a finite number >= 0, got {cfg.agreement_power}")
     if not (math.isfinite(cfg.synthetic_weight) and cfg.synthetic_weight >= 0.0):
@@ -474,6 +478,22 @@ class SilhouetteFilter:
             else:
                 self.dropped[reason] = self.dropped.get(reason, 0) + 1
         return kept
+
+
+def threaded(cfg: PipelineConfig, stage: str, body: Callable[[], dict]) -> dict:
+    """``body()`` (a generation stage) on ``cfg.generation_threads`` CPU threads, by default on the cores other
+    processes leave idle at its start, said in one line; the threads are restored after it and left as they are on
+    a GPU."""
+    if torch.device(cfg.device).type != "cpu":
+        return body()
+    count = cfg.generation_threads
+    if count is None:
+        idle, usable = idle_cpu_cores()
+        count = threads_for_idle(idle)
+        print(f"{stage}: {count} CPU thread{'s' if count > 1 else ''} ({idle:.1f} of {usable} cores idle; "
+              "--generation-threads sets it)")
+    with cpu_threads(count):
+        return body()
 
 
 def prelim_stage(ctx: PipelineContext) -> dict:
@@ -729,14 +749,14 @@ def run_pipeline(data: Path, out: Path, *, split: str = "train", regime: str = "
     silhouettes = SilhouetteFilter(ctx)
     generated: list[GeneratedImage] = []
     if "nvs" in cfg.augment:
-        manifest.stage("nvs", lambda: nvs_stage(ctx))
+        manifest.stage("nvs", lambda: threaded(cfg, "novel views", lambda: nvs_stage(ctx)))
         generated += silhouettes.keep(nvs_images(ctx))
     if "relight" in cfg.augment:
         sources_json = write_relight_sources(ctx, generated)
-        manifest.stage("relight", lambda: relight_stage(ctx, sources_json))
+        manifest.stage("relight", lambda: threaded(cfg, "relighting", lambda: relight_stage(ctx, sources_json)))
         generated += silhouettes.keep(relit_images(ctx))
     if "repair" in cfg.augment:
-        manifest.stage("repair", lambda: repair_stage(ctx))
+        manifest.stage("repair", lambda: threaded(cfg, "repair", lambda: repair_stage(ctx)))
         if (ctx.out / "repair" / MANIFEST_NAME).is_file():
             generated += silhouettes.keep(repaired_images(ctx))
     if cfg.augment and not generated:

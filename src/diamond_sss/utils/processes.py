@@ -1,8 +1,10 @@
-"""A function run in a second (spawned) process: its result, its exception, or an error if the process dies; and a
-progress bar here that follows the steps the second process reports."""
+"""A function run in a second (spawned) process: its result, its exception, or an error if the process dies; a
+progress bar here that follows the steps the second process reports; and the CPU cores this process may use and
+those that are idle."""
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import os
 import pickle
@@ -21,6 +23,22 @@ if TYPE_CHECKING:
 def usable_cores() -> int:
     """CPU cores this process may run on (its affinity mask where the platform has one)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def idle_cpu_cores(sample_s: float = 0.2) -> tuple[float, int]:
+    """``(idle, usable)``: how many of the :func:`usable_cores` no process used over the next ``sample_s`` seconds
+    (system-wide busy shares from psutil, ``sum(1 - busy_i)`` over this process's CPUs), while this one waits."""
+    import psutil
+
+    allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else range(usable_cores())
+    busy = psutil.cpu_percent(interval=sample_s, percpu=True)
+    return sum(1.0 - busy[i] / 100.0 for i in allowed if i < len(busy)), usable_cores()
+
+
+def threads_for_idle(idle: float) -> int:
+    """Threads for work that should take the idle cores and no more (more threads than free cores slow every job on
+    them: oversubscription): ``idle`` rounded to the nearest count, at least 1."""
+    return max(1, math.floor(idle + 0.5))
 
 
 def _call_and_send(connection: Connection, function: Callable[..., Any], args: tuple) -> None:
