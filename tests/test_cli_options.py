@@ -45,7 +45,8 @@ def test_run_reaches_every_pipeline_field_with_the_configs_defaults(tmp_path, ca
     capsys.readouterr()
     main(base)  # --augment auto: the stages it picked, and why
     said = capsys.readouterr().out
-    assert f"--augment auto -> {','.join(captured_pipeline['config'].augment)}: the paper's stages" in said
+    assert captured_pipeline["config"].augment == ("repair",)  # its model ships with the package
+    assert "--augment auto -> repair: render repair (beyond the paper): on four held-out objects" in said
     assert "--augment auto" not in (main([*base, "--augment", "none"]) or capsys.readouterr().out)
 
 

@@ -376,9 +376,16 @@ def test_parse_augment_and_missing_models(setup, tmp_path):
 def test_auto_augment_follows_the_shipped_model_folders(tmp_path, monkeypatch):
     from diamond_sss.diffusion.nvs import pipeline as nvs_pipeline
     from diamond_sss.diffusion.relight import inference as relight_inference
+    from diamond_sss.diffusion.repair import pipeline as repair_pipeline
     from diamond_sss.pipeline.run import parse_augment
 
-    assert parse_augment("auto") == ("nvs", "relight")  # both models ship with the package
+    assert parse_augment("auto") == ("repair",)  # the repair model ships with the package
+    repair_dir = tmp_path / "repair"
+    monkeypatch.setattr(repair_pipeline, "default_model_dir", lambda: repair_dir)
+    assert parse_augment("auto") == ("nvs", "relight")  # without it, the paper's stages whose models ship
+    repair_dir.mkdir()
+    (repair_dir / "config.json").write_text("{}")
+    assert parse_augment("auto") == ("nvs", "relight")  # a folder without weights is no model
     nvs_dir, relight_dir = tmp_path / "nvs", tmp_path / "relight"
     monkeypatch.setattr(nvs_pipeline, "default_model_dir", lambda: nvs_dir)
     monkeypatch.setattr(relight_inference, "shipped_model_path", lambda: relight_dir)

@@ -15,9 +15,9 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
 
     Runs (each resumable under --out; a run made with other models or settings is moved aside to
     <name>.<hash>): SSS-3DGS (`sss3dgs` preset) on the regime's real images only; the DIAMOND-SSS
-    pipeline (the SSS-3DGS run reused as its preliminary reconstruction, novel-view and relighting diffusion
-    with the shipped models, final reconstruction with multi-view losses); with --dense, DIAMOND-SSS on every
-    image as the dense reference.
+    pipeline (the SSS-3DGS run reused as its preliminary reconstruction, the augmentation of --augment with the
+    shipped models, final reconstruction with multi-view losses); with --dense, DIAMOND-SSS on every image as the
+    dense reference.
     Prints the metrics on novel views under novel lights and writes report.md and comparison.png.
 
     Args:
@@ -25,8 +25,8 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
         data: data folder to use instead of the embedded demo object (needs a test split).
         regime: sparse capture regime (default: 3 views x 3 lights = 9 images).
         iterations: training steps of every reconstruction.
-        augment: diffusion stages: auto (those whose model ships with the package) | none | nvs | relight |
-            nvs,relight.
+        augment: augmentation: auto (render repair when its model ships with the package, else the paper's stages
+            whose model ships; `diamond-sss run` says why) | none | nvs | relight | nvs,relight | repair.
         dense: also reconstruct from all images (the upper reference).
         parallel: train the dense reconstruction in a second process beside the other two (on 2+ cores; each
             run trains on one thread either way, so the numbers are the same).

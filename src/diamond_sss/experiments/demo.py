@@ -88,7 +88,7 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
              iterations: int = 1000, augment: str = "auto", dense: bool = True, parallel: bool = True,
              show_progress: bool = True) -> DemoResult:
     """SSS-3DGS (``sss3dgs`` preset, real images only), the DIAMOND-SSS pipeline (the SSS-3DGS run reused as its
-    preliminary reconstruction, the shipped diffusion models, the final reconstruction with multi-view losses)
+    preliminary reconstruction, the shipped models of ``augment``, the final reconstruction with multi-view losses)
     and, with ``dense``, DIAMOND-SSS on every image; all with ``short_schedule(iterations)`` (the pipeline's final
     reconstruction with its own settings, the dense one with its dense budget). With ``parallel`` and two or more
     cores, the dense one trains in a second process while the other two train here (its progress bar here follows
@@ -130,8 +130,8 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
 
     title = f"{root.name}: novel views x novel lights (test split), regime {regime}"
     lines = [f"# DIAMOND-SSS demo: {root.name}", "",
-             (f"Sparse regime `{regime}`, {iterations} steps per reconstruction (`short_schedule`), diffusion "
-              f"augmentation: {', '.join(augments) or 'none (no shipped diffusion model)'}; the DIAMOND-SSS "
+             (f"Sparse regime `{regime}`, {iterations} steps per reconstruction (`short_schedule`), "
+              f"augmentation: {', '.join(augments) or 'none (no shipped model)'}; the DIAMOND-SSS "
               "pipeline reuses the SSS-3DGS run as its preliminary reconstruction (its minutes exclude it). "
               "Metrics on sRGB, full frame, black background, test split (novel views under novel lights)."), "",
              "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]

@@ -190,10 +190,14 @@ def move_aside_if_changed(out: Path, inputs: dict) -> Path | None:
 
 
 def shipped_augments() -> tuple[str, ...]:
-    """The diffusion stages whose default model ships with the package."""
+    """What ``--augment auto`` runs: ``repair`` when its model ships with the package, else the paper's stages whose
+    model ships (:data:`AUTO_AUGMENT_WHY`)."""
     from diamond_sss.diffusion.nvs.pipeline import default_model_dir
     from diamond_sss.diffusion.relight.inference import shipped_model_path
+    from diamond_sss.diffusion.repair.pipeline import default_model_dir as repair_model_dir
 
+    if (repair_model_dir() / "model.safetensors").is_file():
+        return ("repair",)
     available = []
     if (default_model_dir() / "config.json").is_file():
         available.append("nvs")
@@ -202,15 +206,15 @@ def shipped_augments() -> tuple[str, ...]:
     return tuple(available)
 
 
-AUTO_AUGMENT_WHY = ("the paper's stages: on held-out objects of another rig they scored 0.12 dB under --augment "
-                    "repair at 9 images (a tie) and above it at 1 round; at 30 images the two tie and repair "
-                    "generates 7x faster (benchmarks/RESULTS.md, session 44)")
-"""Why ``--augment auto`` picks the paper's stages (``diamond-sss run`` prints it)."""
+AUTO_AUGMENT_WHY = ("render repair (beyond the paper): on four held-out objects of another rig given as only their 9 "
+                    "images it scored +1.63 / +4.19 / +1.68 / +2.84 dB over SSS-3DGS, the paper's stages -0.25 / "
+                    "+2.73 / -0.88 / +2.51 (benchmarks/RESULTS.md, session 45); without the repair model, the paper's "
+                    "stages")
+"""Why ``--augment auto`` picks what it picks (``diamond-sss run`` prints it)."""
 
 
 def parse_augment(text: str) -> tuple[str, ...]:
-    """``auto`` (the paper's stages whose model ships: :data:`AUTO_AUGMENT_WHY`), ``none`` or a comma list of
-    ``nvs`` / ``relight``, or ``repair``."""
+    """``auto`` (:func:`shipped_augments`), ``none`` or a comma list of ``nvs`` / ``relight``, or ``repair``."""
     text = text.strip()
     if text == "auto":
         return shipped_augments()

@@ -327,7 +327,8 @@ CPU_BUDGET: dict[str, int] = {"batch_size": 1, "num_gaussians": 3_000, "max_gaus
 """Batch 1, 3k initial Gaussians capped at 8k, lighter multi-view and ray-tracing sampling (64x64 on a CPU)."""
 
 SHORT_RUN_MODEL: dict[str, Any] = {"sss_lr": 0.005, "sss_width": 64, "lambda_incident_light": 0.0,
-                                   "lr_decay_factor": 0.3, "sss_light_depth": 64, "sss_light_depth_every": 10}
+                                   "lr_decay_factor": 0.3, "sss_light_depth": 64, "sss_light_depth_every": 10,
+                                   "sss_angular_inputs": True}
 """What a run 80-100x shorter than the paper's (1000 steps, not 80-100k) needs, each measured on the demo
 object (benchmarks/RESULTS.md, issue 17): the MLP learns 5x faster (+1.6 dB) and 2x wider (+0.5 dB), the
 incident light is not tied to the SH visibility, which ~10 ray-traced updates per Gaussian leave near its
@@ -339,18 +340,21 @@ dB on three seeds of the dense demo object, all of it under novel lights, and -0
 9-image pipeline runs, with the cast shadows darker, at about the same cost: the map's cost grows with the
 Gaussians, not its pixels). A light's map is rendered once in each window of 10 steps and reused for the rest
 (``sss_light_depth_every``): the demo's 9-image ``sss3dgs`` run takes 15% less time (216 -> 185 s) for 19.19 -> 19.17
-dB, and the demo's rows move within their seed spread (19.19 | 21.47 | 30.33 -> 19.17 | 21.69 | 30.28 dB)."""
+dB, and the demo's rows move within their seed spread (19.19 | 21.47 | 30.33 -> 19.17 | 21.69 | 30.28 dB). The MLP
+sees the cosines n.l, n.v, v.l (an angular prior shared by every Gaussian): dense, +0.84 / +0.26 / +0.23 dB on three
+seeds of the demo object, all of it under novel lights; sparse, on held-out objects of another rig given as only
+their 9 images, the SSS-3DGS baseline +2.34 / +0.38 / +2.20 / +1.52 dB (knot/jade, blob/wax, knot/skin, bust/soap)
+and ``--augment repair`` +1.57 / +0.22 over the same runs without them (the paper's stages -0.49 / -0.83: they lost
+0.55-0.66 dB on the project's own objects too; benchmarks/RESULTS.md, session 45)."""
 
-DENSE_SHORT_RUN: dict[str, Any] = {"batch_size": 2, "sss_angular_inputs": True, "photometric_error": "rmse"}
+DENSE_SHORT_RUN: dict[str, Any] = {"batch_size": 2, "photometric_error": "rmse"}
 """A short run over a dense capture (the demo object's 960 images: at batch 1, 1000 steps draw each image about
-once) draws 2 images per step: +0.7 / +1.2 dB on two seeds for 1.3x the time; its MLP sees the cosines n.l, n.v,
-v.l: +0.84 / +0.26 / +0.23 dB on three seeds, all of it under novel lights; and its photometric loss takes each
+once) draws 2 images per step: +0.7 / +1.2 dB on two seeds for 1.3x the time; and its photometric loss takes each
 image's RMSE, what PSNR measures, in place of Eq. A.1's L1: +0.21 / +0.20 dB on two seeds at 1000 steps, +0.29 /
 +0.26 / +0.23 on three at 10,000. Sparse runs keep batch 1 (their few images are each drawn 100 times or more; batch
-2 cost 0.4 and 1.2 dB in the demo's 9-image rows) and the plain MLP inputs (with the cosines the 9-image SSS-3DGS
-rows gain 0.7-0.8 dB but the full pipeline loses 0.55-0.66 dB: bunny, torus); a sparse run on the real images alone
-keeps Eq. A.1's L1, as the SSS-3DGS baseline has it, and the pipeline's final reconstruction takes the RMSE
-(:data:`PIPELINE_FINAL_RUN`) (benchmarks/RESULTS.md, issues 17 and 18)."""
+2 cost 0.4 and 1.2 dB in the demo's 9-image rows); a sparse run on the real images alone keeps Eq. A.1's L1, as the
+SSS-3DGS baseline has it, and the pipeline's final reconstruction takes the RMSE (:data:`PIPELINE_FINAL_RUN`)
+(benchmarks/RESULTS.md, issues 17 and 18)."""
 
 PIPELINE_FINAL_RUN: dict[str, Any] = {"photometric_error": "rmse"}
 """The DIAMOND-SSS pipeline's final reconstruction over a sparse capture (its real images and a few hundred generated
