@@ -32,8 +32,9 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         out: pipeline folder.
         split: training split.
         regime: capture regime of the real images (e.g. views=5%,lights=5%).
-        augment: auto (the paper stages whose model ships with the package; it says why) | none | nvs | relight |
-            nvs,relight | repair (beyond the paper: the renders repaired, docs/pipeline.md).
+        augment: auto (repair when its model ships with the package, else the paper's stages whose model ships; it
+            says why) | none | nvs | relight | nvs,relight | repair (beyond the paper: the renders repaired,
+            docs/pipeline.md).
         iterations: training steps of each reconstruction (default: 1000 under --preset auto, the preset's
             otherwise); the short-run settings' or the named preset's step-valued keys are scaled by iterations /
             their iterations, as `diamond-sss train --iterations` does.
