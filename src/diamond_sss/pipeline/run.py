@@ -207,8 +207,8 @@ def shipped_augments() -> tuple[str, ...]:
 
 
 AUTO_AUGMENT_WHY = ("render repair (beyond the paper): on four held-out objects of another rig given as only their 9 "
-                    "images it scored +1.63 / +4.19 / +1.68 / +2.84 dB over SSS-3DGS, the paper's stages -0.25 / "
-                    "+2.73 / -0.88 / +2.51 (benchmarks/RESULTS.md, session 45); without the repair model, the paper's "
+                    "images it scored +1.64 / +4.19 / +1.68 / +2.84 dB over SSS-3DGS, the paper's stages -0.24 / "
+                    "+2.72 / -0.88 / +2.51 (benchmarks/RESULTS.md, session 45); without the repair model, the paper's "
                     "stages")
 """Why ``--augment auto`` picks what it picks (``diamond-sss run`` prints it)."""
 

@@ -32,7 +32,7 @@ def idle_cpu_cores(sample_s: float = 0.2) -> tuple[float, int]:
 
     allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else range(usable_cores())
     busy = psutil.cpu_percent(interval=sample_s, percpu=True)
-    return sum(1.0 - busy[i] / 100.0 for i in allowed if i < len(busy)), usable_cores()
+    return sum(1.0 - busy[i] / 100.0 for i in allowed if i < len(busy)), len(allowed)
 
 
 def threads_for_idle(idle: float) -> int:
