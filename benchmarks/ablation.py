@@ -16,7 +16,7 @@ import shutil
 from pathlib import Path
 
 from diamond_sss.data.embedded import embedded_dataset
-from diamond_sss.experiments.ablation import REGIMES, VARIANTS, ablation_table, run_ablation
+from diamond_sss.experiments.ablation import DEFAULT_VARIANTS, REGIMES, VARIANTS, ablation_table, run_ablation
 from diamond_sss.training.config import DENSE_SHORT_RUN, short_schedule
 
 RESULTS = Path(__file__).resolve().parent / "results" / "ablation"
@@ -28,7 +28,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=None, help="data folder (default: the embedded demo)")
     parser.add_argument("--iterations", type=int, default=400)
     parser.add_argument("--regimes", nargs="+", default=list(REGIMES))
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS))
+    parser.add_argument("--variants", nargs="+", default=list(DEFAULT_VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--out", type=Path, default=RUNS, help="run folders (resumable)")
     parser.add_argument("--results", type=Path, default=RESULTS, help="where the tables and figures are copied")
     args = parser.parse_args()

@@ -11,6 +11,7 @@ CPU alone and <= 2x that beside a training run; <= 5 s on a GPU, never slower th
 
     python benchmarks/generation_speed.py --threads auto 0 1 --beside-training      # the demo object, 9 images
     python benchmarks/generation_speed.py --data CAPTURE --regime all --prelim-run RUN
+    python benchmarks/generation_speed.py --device cuda --threads 0     # the stages on a GPU
 
 Writes generation_speed.json and generation_speed.md to --results.
 """
@@ -115,9 +116,11 @@ def run(data: Path, regime: str, prelim_run: Path | None, work: Path, results: P
             rows.append({"threads": count, "condition": condition, **row})
             print(json.dumps(rows[-1]), flush=True)
     results.mkdir(parents=True, exist_ok=True)
-    meta = {"data": str(data), "regime": regime, "prelim_run": str(prelim_run)}
+    device = (config or PipelineConfig()).device
+    meta = {"data": str(data), "regime": regime, "prelim_run": str(prelim_run), "device": device}
     (results / "generation_speed.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
-    lines = [f"Diffusion stages of `diamond-sss run` on {data} (`{regime}`), fresh cache.", "", HEADER,
+    lines = [f"Diffusion stages of `diamond-sss run` on {data} (`{regime}`), device {device}, fresh cache.", "",
+             HEADER,
              "|---|---|---|---|---|---|"]
     named = {None: "auto", 0: "default"}
     lines += [f"| {named.get(r['threads'], r['threads'])} | {r['condition']} | {r['nvs_s']:.1f} | "
@@ -137,11 +140,12 @@ def main() -> None:
     parser.add_argument("--beside-training", action="store_true", help="also time beside a 1-thread training run")
     parser.add_argument("--work", type=Path, default=WORK)
     parser.add_argument("--results", type=Path, default=RESULTS)
+    parser.add_argument("--device", default="auto", help="the diffusion models' device (pipeline --device)")
     args = parser.parse_args()
     conditions = ["alone", "beside"] if args.beside_training else ["alone"]
     try:
         run(args.data or embedded_dataset(), args.regime, args.prelim_run, args.work, args.results, args.threads,
-            conditions)
+            conditions, PipelineConfig(device=args.device))
     except ValueError as exc:
         sys.exit(f"generation_speed: {exc}")
 

@@ -19,6 +19,7 @@ D-SSIM, Adam, no densification: :func:`time_plain_3dgs`), the floor a step of th
     python benchmarks/speed.py --device cuda        # the CUDA targets (needs gsplat's CUDA build)
     python benchmarks/speed.py --counts 10000 --resolutions 64 --steps 3   # the small case's operator counts
     python benchmarks/speed.py --device cuda --profile   # + where the time goes (profile_<case>.txt)
+    python benchmarks/speed.py --device cuda --compile off inductor   # + the step under runtime.compile=inductor
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from diamond_sss.gaussians.model import nearest_neighbor_scales
 from diamond_sss.losses.photometric import photometric_loss
 from diamond_sss.training.overrides import make_config
 from diamond_sss.training.trainer import ImageSource, Trainer
+from diamond_sss.utils.compiling import COMPILE_BACKENDS
 from diamond_sss.utils.profiling import profile_steps, synchronize
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -120,12 +122,14 @@ def time_plain_3dgs(scene, dataset: OLATDataset, device: torch.device, steps: in
 
 
 def time_case(root: Path, count: int, resolution: int, device: str, repeats: int, steps: int,
-              multiview: bool, profile_dir: Path, plain_3dgs: bool = False) -> tuple[dict, dict | None]:
+              multiview: bool, profile_dir: Path, plain_3dgs: bool = False,
+              compile_backend: str = "off") -> tuple[dict, dict | None]:
     """Median render forward/backward (ms) and :func:`time_steps` of ``steps`` training steps (the tables of the
-    profiled steps in ``profile_dir``); with ``plain_3dgs``, also :func:`time_plain_3dgs` at the same Gaussians and
-    size (else ``None``)."""
+    profiled steps in ``profile_dir``) under ``runtime.compile = compile_backend`` (``warmup_s``: the steps before
+    the timed ones, compilation included); with ``plain_3dgs``, also :func:`time_plain_3dgs` at the same Gaussians
+    and size (else ``None``)."""
     overrides = {"num_gaussians": count, "batch_size": 1, "densify": False, "lambda_lpips": 0.0, "device": device,
-                 "log_every": 10_000, "init": "random"}
+                 "log_every": 10_000, "init": "random", "compile": compile_backend}
     if not multiview:
         overrides.update(lambda_sil=0.0, lambda_depth=0.0)
     cfg = make_config("diamond", overrides=overrides)
@@ -157,12 +161,16 @@ def time_case(root: Path, count: int, resolution: int, device: str, repeats: int
         name = f"profile_{device}_{count}x{resolution}"
         plain = time_plain_3dgs(scene, dataset, dev, steps, profile_dir / f"{name}_3dgs.txt") if plain_3dgs else None
         warmup = max(2, cfg.raytrace.every)
+        started = time.perf_counter()
         for step in range(warmup):
             trainer.training_step(scene, optimizers, state, step)
+        synchronize(dev)
+        warmup_s = time.perf_counter() - started
+        suffix = ("mv" if multiview else "no_mv") + ("" if compile_backend == "off" else f"_{compile_backend}")
         timed = time_steps(lambda i: trainer.training_step(scene, optimizers, state, i), dev, warmup, steps,
-                           max(PROFILE_STEPS, cfg.raytrace.every),
-                           profile_dir / f"{name}_{'mv' if multiview else 'no_mv'}.txt")
+                           max(PROFILE_STEPS, cfg.raytrace.every), profile_dir / f"{name}_{suffix}.txt")
     row = {"device": device, "gaussians": count, "resolution": resolution, "multiview": multiview,
+           "compile": compile_backend, "warmup_s": warmup_s,
            "render_forward_ms": statistics.median(forward), "render_backward_ms": statistics.median(backward), **timed}
     return row, plain
 
@@ -201,7 +209,8 @@ def table_lines(rows: list[dict], plain: list[dict]) -> list[str]:
         base = [b for b in plain if (b["device"], b["gaussians"], b["resolution"]) == case]
         lines.append(head + ("| plain 3DGS (gsplat) | | " + _cells({**base[0], "x_plain_3dgs": 1.0}) if base
                              else "| plain 3DGS (gsplat) | | | needs CUDA | | | | | | | |"))
-        lines += [head + f"| full objective, multi-view losses {'on' if r['multiview'] else 'off'} "
+        lines += [head + f"| full objective, multi-view losses {'on' if r['multiview'] else 'off'}"
+                  + ("" if r.get("compile", "off") == "off" else f", compiled ({r['compile']})") + " "
                   f"| {r['render_forward_ms']:.1f} | {r['render_backward_ms']:.1f} " + _cells(r)
                   for r in rows if (r["device"], r["gaussians"], r["resolution"]) == case]
     return lines
@@ -221,6 +230,8 @@ def main() -> None:
                         help="CUDA cases as GAUSSIANSxPIXELS")
     parser.add_argument("--scale-points", type=int, default=1_000_000, help="cloud size of the initial-scales row")
     parser.add_argument("--output", type=Path, default=RESULTS)
+    parser.add_argument("--compile", nargs="+", default=["off"], choices=COMPILE_BACKENDS,
+                        help="runtime.compile values, each a row per case (e.g. off inductor)")
     parser.add_argument("--profile", action="store_true",
                         help="also write where the time of the 5 profiled steps per case goes (profile_<case>.txt "
                              "under --output; the counts per step are in every row either way)")
@@ -246,9 +257,10 @@ def main() -> None:
             root = Path(tmp) / f"sphere_{resolution}"
             if not root.exists():
                 make_capture(root, views=8, lights=4, size=resolution)
-            for multiview in (False, True):
+            for backend, multiview in ((b, m) for b in args.compile for m in (False, True)):
+                first = backend == args.compile[0] and not multiview
                 row, base = time_case(root, count, resolution, device, args.repeats, steps, multiview, profile_dir,
-                                      plain_3dgs=device == "cuda" and not multiview)
+                                      plain_3dgs=device == "cuda" and first, compile_backend=backend)
                 if base is not None:
                     plain.append(base)
                     print(base, flush=True)

@@ -8,7 +8,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON="${1:-.venv/bin/python}"
 DEST="${2:-outputs/wheels}"
-packages=(gsplat tyro docstring-parser typeguard typing-extensions plyfile pytorch-msssim pypng diffusers)
+packages=(gsplat tyro docstring-parser typeguard typing-extensions plyfile pytorch-msssim pypng diffusers psutil)
 [[ "${LEAN:-0}" == 1 ]] || packages+=(optuna alembic colorlog sqlalchemy greenlet mako)
 "$PYTHON" -c "import pip" 2>/dev/null \
     || { echo "fetch_gpu_wheels: $PYTHON does not run or has no pip (run make setup first, or name a Python)" >&2; exit 2; }

@@ -4,7 +4,9 @@ Steps, each timed and recorded even when an earlier one failed:
   1. the machine: GPU, driver, CUDA, torch, gsplat, Python;
   2. gsplat's CUDA build (JIT, first use) with one tiny ``gsplat.rasterization`` call;
   3. the CUDA tests (``pytest -m cuda``), then the whole suite on the CUDA machine;
-  4. ``benchmarks/speed.py --device cuda`` (training-step targets) and ``benchmarks/speed_raster.py``; then
+  4. ``benchmarks/speed.py --device cuda`` (training-step targets), the same under ``runtime.compile=inductor``
+     (``speed-compiled``), the diffusion stages of a 9-image pipeline on the GPU (``generation``:
+     ``benchmarks/generation_speed.py --device cuda``) and ``benchmarks/speed_raster.py``; then
      ``benchmarks/nvs_speed.py`` on the GPU prior's model (below): its step in parts, 4 and 8 objects, fp32 and
      bf16, deterministic and autotuned kernels, profiled;
   5. a demo-object reconstruction on CUDA (`diamond` preset, full objective) and its evaluation on the test
@@ -44,7 +46,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-STEPS = ("build", "cuda-tests", "suite", "speed", "speed-raster", "nvs-speed", "train", "eval", "nvs-prior")
+STEPS = ("build", "cuda-tests", "suite", "speed", "speed-compiled", "generation", "speed-raster", "nvs-speed", "train",
+         "eval", "nvs-prior")
 PRIOR_MODEL = ["--image-size", "64", "--block-out-channels", "48", "96", "96", "--layers-per-block", "2",
                "--prediction-type", "v_prediction", "--hint-residual", "--no-gradient-checkpointing",
                "--learning-rate", "3e-4", "--objects-per-batch", "8", "--checkpoint-every", "500", "--log-every", "20"]
@@ -214,6 +217,10 @@ def main() -> None:
         "cuda-tests": [python, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider"],
         "suite": [python, "-m", "pytest", "-q", "-p", "no:cacheprovider"],
         "speed": [python, "benchmarks/speed.py", "--device", "cuda", "--profile", "--output", str(out)],
+        "speed-compiled": [python, "benchmarks/speed.py", "--device", "cuda", "--compile", "inductor", "--profile",
+                           "--output", str(out / "speed_compiled")],
+        "generation": [python, "benchmarks/generation_speed.py", "--device", "cuda", "--threads", "0",
+                       "--work", str(out / "generation_work"), "--results", str(out / "generation_speed")],
         "speed-raster": [python, "benchmarks/speed_raster.py", "--resolutions", "64", "--counts", "10000",
                          "--output", str(out / "speed_raster.json")],
         "nvs-speed": [python, "benchmarks/nvs_speed.py", *(["--data", *map(str, args.prior_data)] if args.prior_data

@@ -46,5 +46,6 @@ mkdir -p "$OUT"
 [[ -f "$work/report.md" ]] && cp "$work/report.md" "$OUT/"
 [[ -d "$work/nvs_prior_model" ]] && cp -r "$work/nvs_prior_model" "$OUT/"
 [[ -f "$work/nvs_prior_run/train_log.jsonl" ]] && cp "$work/nvs_prior_run/train_log.jsonl" "$work/nvs_prior_train_log.jsonl"
-tar czf "$OUT/gpu_check.tgz" -C "$work" --exclude nvs_prior_run --exclude nvs_prior_model --exclude demo_run .
+tar czf "$OUT/gpu_check.tgz" -C "$work" --exclude nvs_prior_run --exclude nvs_prior_model --exclude demo_run \
+    --exclude generation_work .
 exit "$code"

@@ -40,13 +40,20 @@ def test_ablation_writes_table_json_and_grid(capture, tmp_path):
         run_ablation(capture, tmp_path, variants=["+normals"])
 
 
-def test_ablation_gives_the_dense_regime_its_own_overrides(capture, tmp_path):
-    run_ablation(capture, tmp_path, variants=["sss3dgs"], regimes=["all", "views=50%,lights=all"], iterations=1,
-                 overrides={"num_gaussians": 200, "lambda_lpips": 0.0, "batch_size": 1},
-                 dense_overrides={"batch_size": 2}, show_progress=False)
-    batch = {slug: json.loads((tmp_path / slug / "sss3dgs" / "config.json").read_text())["schedule"]["batch_size"]
-             for slug in ("all", "views50p_lightsall")}
-    assert batch == {"all": 2, "views50p_lightsall": 1}
+def test_ablation_gives_the_dense_regime_its_own_overrides(capture, tmp_path, monkeypatch):
+    """Dense by the images a regime selects (here 18 and 9), not by its name: with dense from 10 images `all` takes
+    the dense overrides, from 19 neither regime does."""
+    from diamond_sss.experiments import ablation
+
+    for threshold, expected in ((10, {"all": 2, "views50p_lightsall": 1}), (19, {"all": 1, "views50p_lightsall": 1})):
+        monkeypatch.setattr(ablation, "DENSE_MIN_IMAGES", threshold)
+        out = tmp_path / str(threshold)
+        run_ablation(capture, out, variants=["sss3dgs"], regimes=["all", "views=50%,lights=all"], iterations=1,
+                     overrides={"num_gaussians": 200, "lambda_lpips": 0.0, "batch_size": 1},
+                     dense_overrides={"batch_size": 2}, show_progress=False)
+        batch = {slug: json.loads((out / slug / "sss3dgs" / "config.json").read_text())["schedule"]["batch_size"]
+                 for slug in expected}
+        assert batch == expected
 
 
 def test_demo_writes_report(capture, tmp_path, capsys):

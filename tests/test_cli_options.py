@@ -9,6 +9,7 @@ import pytest
 
 from diamond_sss.cli.main import main
 from diamond_sss.cli.options import config_from, options_of
+from diamond_sss.data.analytic import make_capture
 from diamond_sss.pipeline.config import PipelineConfig
 from diamond_sss.training.overrides import make_config, short_run_overrides
 
@@ -138,9 +139,10 @@ def test_seed_and_device_flags_left_out_keep_the_config_files_values(tmp_path, m
     seen = {}
     monkeypatch.setattr(training_run, "train_run", lambda data, out, config, **kwargs: seen.update(config=config) or
                         dataclasses.make_dataclass("R", ["steps", "seconds", "num_gaussians", "final_loss"])(1, 0, 1, 0))
+    make_capture(tmp_path, views=3, lights=2, size=12)
     base = ["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--quiet"]
     main(base)  # the default preset auto: diamond with the short-run settings, no seed or device among them
-    assert seen["config"] == make_config("diamond", overrides=short_run_overrides(1000, dense=True))
+    assert seen["config"] == make_config("diamond", overrides=short_run_overrides(1000))
     main([*base, "--preset", "diamond"])
     assert seen["config"] == make_config("diamond")
     main([*base, "--preset", "diamond", "--seed", "5", "--device", "cpu"])
@@ -161,7 +163,7 @@ def test_seed_and_device_flags_left_out_keep_the_config_files_values(tmp_path, m
 def test_ablate_trains_the_benchmarks_short_schedule_and_densifies_within_its_steps(tmp_path, monkeypatch):
     """``diamond-sss ablate`` builds each run's config as benchmarks/ablation.py does: the short-run settings
     scaled to --iterations (the preset's 10,000-step schedule would start densifying after the run's end), a dense
-    capture's on the regime ``all``, --set's last."""
+    capture's on a regime that selects 100 images or more, --set's last."""
     from diamond_sss.experiments import ablation
     from diamond_sss.training.config import DENSE_SHORT_RUN
 
@@ -174,9 +176,10 @@ def test_ablate_trains_the_benchmarks_short_schedule_and_densifies_within_its_st
     monkeypatch.setattr(ablation, "evaluate_run", lambda *args, **kwargs: {"psnr": 0.0, "ssim": 0.0, "mask_iou": 0.0})
     monkeypatch.setattr(ablation, "write_ablation_report", lambda *args: None)
     monkeypatch.setattr(ablation, "save_ablation_figure", lambda *args: None)
+    make_capture(tmp_path, views=10, lights=10, size=12)  # 100 images: `all` selects a dense capture
     base = ["ablate", "--data", str(tmp_path), "--out", str(tmp_path / "ablation"), "--quiet"]
     main([*base, "--iterations", "400", "--regimes", "all", "views=3,lights=3"])
-    assert len(configs) == 2 * len(ablation.VARIANTS)
+    assert len(configs) == 2 * len(ablation.DEFAULT_VARIANTS)
     for (regime, variant), cfg in configs.items():
         densify = cfg.densify
         refine_steps = [step for step in range(cfg.schedule.iterations) if densify.refine_start_iter < step
@@ -199,12 +202,12 @@ def test_the_cli_defaults_are_the_experiments_own():
 
     from diamond_sss.cli.demo import demo
     from diamond_sss.cli.train_commands import ablate
-    from diamond_sss.experiments.ablation import REGIMES, VARIANTS
+    from diamond_sss.experiments.ablation import DEFAULT_VARIANTS, REGIMES
     from diamond_sss.experiments.demo import DEMO_REGIME
 
     ablate_defaults = inspect.signature(ablate).parameters
     assert ablate_defaults["regimes"].default == list(REGIMES) == ["all", "views=5,lights=6", "views=3,lights=3"]
-    assert ablate_defaults["variants"].default == list(VARIANTS)
+    assert ablate_defaults["variants"].default == list(DEFAULT_VARIANTS)
     assert inspect.signature(demo).parameters["regime"].default == DEMO_REGIME
 
 

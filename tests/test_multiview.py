@@ -592,7 +592,7 @@ def test_trainer_terms_start_late_and_unobserved_targets_have_no_silhouette(tmp_
     assert trainer.multiview_terms(scene, render, target, 4) == {}  # before 0.5 x 10 steps
     calls = []
     losses = trainer_module.multiview_losses_batched
-    monkeypatch.setattr(trainer_module, "multiview_losses_batched",
+    monkeypatch.setattr(trainer, "_multiview_losses",
                         lambda *args, **kwargs: calls.append((args, kwargs)) or losses(*args, **kwargs))
     terms = trainer.multiview_terms(scene, render, target, 5)
     assert set(terms) == {"mv_silhouette", "mv_depth"}

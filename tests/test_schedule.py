@@ -209,13 +209,17 @@ def test_the_default_preset_trains_with_the_short_run_settings(tmp_path, monkeyp
     monkeypatch.setattr(training_run, "train_run", lambda data, out, config, **kwargs: seen.update(trained=config) or
                         dataclasses.make_dataclass("R", ["steps", "seconds", "num_gaussians", "final_loss"])(1, 0, 1, 0))
     monkeypatch.setattr(pipeline_run, "run_pipeline", lambda data, out, **kwargs: seen.update(kwargs) or {})
-    base = [command, "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--regime", regime, "--quiet"]
+    make_capture(tmp_path / "data", views=10, lights=10, size=12)  # 100 images: a dense capture for `train`
+    base = [command, "--data", str(tmp_path / "data"), "--out", str(tmp_path / "out"), "--regime", regime, "--quiet"]
     main([*base, *flag, "--iterations", "2000", "--set", "sss_width=32"])
     expected = short_run_overrides(2000, dense=regime == "all", pipeline_final=command == "run")
     said = " ".join(capsys.readouterr().out.split())
     assert "preset auto = diamond with the short-run settings for 2000 steps" in said
     if command == "train":
         assert seen["trained"] == make_config("diamond", overrides={**expected, "sss_width": 32})
+        images = 100 if regime == "all" else 9
+        assert (f"({'a dense' if regime == 'all' else 'a sparse'} capture's: regime {regime} selects {images} images, "
+                "dense from 100)") in said
     else:
         assert seen["preset"] == "diamond"
         assert seen["overrides"] == {**expected, "sss_width": 32}
@@ -234,6 +238,26 @@ def test_the_default_preset_trains_with_the_short_run_settings(tmp_path, monkeyp
         with pytest.raises(SystemExit):
             main([*base, *flag, "--iterations", steps])
         assert f"--iterations must be a positive number of training steps, got {steps}" in capsys.readouterr().err
+
+
+def test_train_takes_a_dense_captures_settings_by_the_images_its_regime_selects(tmp_path, monkeypatch, capsys):
+    """A user's sparse capture holds only its images: `--regime all` then selects 9 of them, and the run takes a
+    sparse capture's settings (batch 1, L1), not a dense one's; 100 images or more are a dense capture."""
+    import dataclasses
+
+    import diamond_sss.training.run as training_run
+
+    seen = {}
+    monkeypatch.setattr(training_run, "train_run", lambda data, out, config, **kwargs: seen.update(trained=config) or
+                        dataclasses.make_dataclass("R", ["steps", "seconds", "num_gaussians", "final_loss"])(1, 0, 1, 0))
+    for views, lights, dense in ((3, 3, False), (10, 9, False), (10, 10, True)):
+        data = tmp_path / f"{views}x{lights}"
+        make_capture(data, views=views, lights=lights, size=12)
+        main(["train", "--data", str(data), "--out", str(tmp_path / "run"), "--quiet"])
+        assert seen["trained"] == make_config("diamond", overrides=short_run_overrides(1000, dense=dense))
+        assert (seen["trained"].schedule.batch_size, seen["trained"].losses.photometric_error) == (
+            (2, "rmse") if dense else (1, "l1"))
+        assert f"selects {views * lights} images, dense from 100" in " ".join(capsys.readouterr().out.split())
 
 
 def test_pipeline_iterations_scale_the_schedule_unless_kept(tmp_path, monkeypatch):

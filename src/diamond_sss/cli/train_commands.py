@@ -30,9 +30,9 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
             iterations / their iterations.
         keep_schedule: with --iterations and a named --preset, keep the preset's step-valued keys as they are.
         short_run: kept for old scripts, the default preset auto trains with these settings: the settings measured
-            for runs of 1,000 to 10,000 steps on 64-px captures (training.config.short_schedule; with --regime all
-            a dense capture's), scaled to --iterations (default 1000); with a named --preset, that preset with
-            them; --config's keys and --set's come after them.
+            for runs of 1,000 to 10,000 steps on 64-px captures (training.config.short_schedule; a dense capture's
+            when the regime selects 100 images or more), scaled to --iterations (default 1000); with a named
+            --preset, that preset with them; --config's keys and --set's come after them.
         config: JSON file of config keys (e.g. the best configuration written by `diamond-sss tune`).
         seed: seed of the regime selection, initialisation and every random draw (schedule.seed; default:
             --config's, else the preset's).
@@ -40,15 +40,21 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
         device: auto | cpu | cuda (runtime.device; default: --config's, else the preset's).
         quiet: no progress bar.
     """
+    from diamond_sss.training.config import AUTO_PRESET, DENSE_MIN_IMAGES, Schedule
     from diamond_sss.training.overrides import checked_values, config_file_values, make_config, parse_sets
-    from diamond_sss.training.run import train_run
+    from diamond_sss.training.run import selected_images, train_run
 
     console = Console(soft_wrap=True)
     from_file = config_file_values(config) if config is not None else {}
     sets = checked_values(parse_sets(set_))
-    preset, schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
-                                                dense=regime == "all", given=from_file, fixed=sets)
     flags = checked_values(given_overrides(seed=seed, device=device))
+    images = selected_images(data, split, regime, {**from_file, **flags, **sets}.get("schedule.seed", Schedule.seed))
+    short = short_run or preset == AUTO_PRESET
+    preset, schedule, said = schedule_overrides(preset, iterations, keep_schedule=keep_schedule, short_run=short_run,
+                                                dense=images >= DENSE_MIN_IMAGES, given=from_file, fixed=sets)
+    if said and short:
+        said += (f" ({'a dense' if images >= DENSE_MIN_IMAGES else 'a sparse'} capture's: regime {regime} selects "
+                 f"{images} images, dense from {DENSE_MIN_IMAGES})")
     resolved = make_config(preset, overrides={**from_file, **schedule, **flags, **sets})  # before anything is written
     if said:
         console.print(said)
@@ -63,7 +69,8 @@ def config(preset: PresetArg = "auto", iterations: int | None = None, regime: st
     Args:
         iterations: training steps, as `train --iterations` (default: 1000 under --preset auto, the preset's
             otherwise).
-        regime: capture regime, as `train --regime` (under --preset auto, all takes a dense capture's settings).
+        regime: capture regime, as `train --regime` (under --preset auto, all is shown with a dense capture's
+            settings; `train` decides by how many images its regime selects: 100 or more).
         json: print a JSON object of key -> value instead of a table.
     """
     from diamond_sss.training.overrides import describe_config
@@ -206,10 +213,11 @@ def ablate(data: Path, out: Path, regimes: list[str] = ["all", "views=5,lights=6
         out: output folder.
         regimes: capture regimes to compare.
         variants: sss3dgs | diamond-no-mv | +silhouette | +depth | +both | +both-all-targets (targets also
-            among the views without an image).
+            among the views without an image) | sss3dgs+silhouette | sss3dgs+depth | sss3dgs+both (the terms on
+            the sss3dgs preset).
         iterations: training steps per run, with the short-run settings (training.config.short_schedule) scaled
-            to them and, on the dense regime all, a dense capture's (DENSE_SHORT_RUN), as benchmarks/ablation.py
-            trains; --set's keys come after them.
+            to them and, on a regime that selects 100 images or more, a dense capture's (DENSE_SHORT_RUN), as
+            benchmarks/ablation.py trains; --set's keys come after them.
         seed: seed of every run (schedule.seed; default: the preset's).
         quiet: no progress bars.
     """

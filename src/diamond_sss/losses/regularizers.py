@@ -206,7 +206,8 @@ def normals_from_depth(depth: Tensor, w2c: Tensor, K: Tensor) -> Tensor:
     K = _batched_camera("K", K, batch, (3, 3)).to(depth)
     uv = pixel_grid(height, width, device=depth.device).to(depth).reshape(1, -1, 2).expand(batch, -1, -1)
     points = unproject_pixels(uv, depth.reshape(batch, -1), w2c, K).reshape(batch, height, width, 3)
-    padded = F.pad(points.permute(0, 3, 1, 2), (1, 1, 1, 1), mode="replicate").permute(0, 2, 3, 1)
+    # contiguous: inductor's replication_pad2d_backward asserts the strides of a contiguous input (torch 2.13)
+    padded = F.pad(points.permute(0, 3, 1, 2).contiguous(), (1, 1, 1, 1), mode="replicate").permute(0, 2, 3, 1)
     d_u = padded[:, 1:-1, 2:] - padded[:, 1:-1, :-2]
     d_v = padded[:, 2:, 1:-1] - padded[:, :-2, 1:-1]
     normals = F.normalize(torch.linalg.cross(d_u, d_v, dim=-1), dim=-1)

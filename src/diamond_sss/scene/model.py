@@ -27,6 +27,7 @@ from diamond_sss.shading.deferred import LIGHT_FALLOFFS, GBuffer, ShadingResult,
 from diamond_sss.shading.light_depth import CachedLights, depth_below_surface, light_cameras
 from diamond_sss.shading.sh import visibility_from_sh
 from diamond_sss.shading.sss_mlp import SSSMLPConfig, SSSResidualMLP, light_geometry
+from diamond_sss.utils.compiling import compiled
 
 MATERIAL_OVERRIDES = ("base_color", "roughness", "metallic", "subsurface")
 
@@ -69,6 +70,17 @@ class RelightableScene(nn.Module):
         self.register_buffer("scene_radius", torch.tensor(float(scene_radius)))
         self.mixed_precision = mixed_precision
         self.light_falloff = light_falloff
+        self.compiled_with = "off"
+        self._features_fn = RelightableScene._features
+        self._shade_fn = deferred_shade
+
+    def compile_shading(self, backend: str) -> None:
+        """Run the per-Gaussian features and the deferred shading through ``torch.compile`` with ``backend``
+        (:func:`~diamond_sss.utils.compiling.compiled`; ``off``: eager again). The light depth maps and the
+        rasterizer between them stay eager."""
+        self._features_fn = compiled(RelightableScene._features, backend)  # unbound: a deep copy keeps its own
+        self._shade_fn = compiled(deferred_shade, backend)
+        self.compiled_with = backend
 
     @property
     def light_scale(self) -> Tensor:
@@ -83,6 +95,14 @@ class RelightableScene(nn.Module):
         (``(x - c) / r``), so its positional encoding covers about ``[-1, 1]`` whatever the capture's units.
         Under ``mixed_precision`` on CUDA the MLP runs in bfloat16 autocast.
         """
+        light_depth = (self.light_depth(light_positions, cached_lights) / self.scene_radius
+                       if self.light_depth_size else None)
+        return self._features_fn(self, viewmats, light_positions, light_depth, overrides)
+
+    def _features(self, viewmats: Tensor, light_positions: Tensor, light_depth: Tensor | None,
+                  overrides: dict[str, float | Tensor] | None) -> Tensor:
+        """:meth:`gaussian_features` given the light depth below the surface ``[B,N,1]`` (scene radii; ``None``:
+        not an input): no rasterization, so it compiles as one graph."""
         g = self.gaussians
         means = g.means
         batch, num = viewmats.shape[0], means.shape[0]
@@ -91,7 +111,6 @@ class RelightableScene(nn.Module):
         mlp_visibility = visibility if self.visibility_gradient else visibility.detach()
         normals = g.normals
         radius = self.scene_radius
-        light_depth = self.light_depth(light_positions, cached_lights) / radius if self.light_depth_size else None
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.mixed_precision and means.is_cuda):
             sss = self.mlp(((means - self.scene_center) / radius).expand(batch, num, 3),
                            g.quats.expand(batch, num, 4), (g.scales / radius).expand(batch, num, 3),
@@ -142,7 +161,7 @@ class RelightableScene(nn.Module):
         raster = rasterize(g.means, g.quats, g.scales, g.opacities, features, viewmats, Ks, width, height,
                            backend=backend)
         gbuffer = GBuffer.from_features(raster.features, raster.depth, raster.alpha)
-        shading = deferred_shade(gbuffer, viewmats, Ks, light_positions, light_intensities, self.light_scale,
+        shading = self._shade_fn(gbuffer, viewmats, Ks, light_positions, light_intensities, self.light_scale,
                                  self.scene_center if self.light_falloff == "inverse_square" else None)
         return SceneRender(shading=shading, gbuffer=gbuffer, raster=raster)
 

@@ -208,6 +208,8 @@ class Runtime:
     log_every: int = _key(25, "steps between scalar logs")
     image_log_every: int = _key(500, "steps between TensorBoard image logs")
     lpips_weights: str = _key("", "LPIPS (VGG) weights in safetensors (empty: $DIAMOND_SSS_LPIPS_WEIGHTS)")
+    compile: str = _key("off", "off | inductor | aot_eager: torch.compile the render around the rasterizer and the image "
+                                "objective (fewer kernel launches on CUDA; the first steps compile)")
 
 
 @dataclass(frozen=True)
@@ -355,6 +357,13 @@ image's RMSE, what PSNR measures, in place of Eq. A.1's L1: +0.21 / +0.20 dB on 
 2 cost 0.4 and 1.2 dB in the demo's 9-image rows); a sparse run on the real images alone keeps Eq. A.1's L1, as the
 SSS-3DGS baseline has it, and the pipeline's final reconstruction takes the RMSE (:data:`PIPELINE_FINAL_RUN`)
 (benchmarks/RESULTS.md, issues 17 and 18)."""
+
+DENSE_MIN_IMAGES = 100
+"""A run whose regime selects at least this many training images takes a dense capture's short-run settings
+(:data:`DENSE_SHORT_RUN`); fewer, a sparse capture's. Measured: 9, 30 and 40 images (all views under one light
+each) are sparse captures (batch 2 cost 0.4 and 1.2 dB in the demo's 9-image rows; on a held-out object's 9 images
+the dense settings scored 18.23 dB, the sparse ones 18.22), the demo's 960 images a dense one; counts between 40 and
+960 are not measured (benchmarks/RESULTS.md, issues 17, 57 and 60)."""
 
 PIPELINE_FINAL_RUN: dict[str, Any] = {"photometric_error": "rmse"}
 """The DIAMOND-SSS pipeline's final reconstruction over a sparse capture (its real images and a few hundred generated

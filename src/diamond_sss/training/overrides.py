@@ -29,6 +29,7 @@ from diamond_sss.training.config import (
     schedule_for,
     short_schedule,
 )
+from diamond_sss.utils.compiling import COMPILE_BACKENDS
 from diamond_sss.utils.io import read_json
 
 
@@ -163,6 +164,7 @@ FRACTIONS = {"losses.lambda_dssim": "[0, 1]", "densify.prune_opa": "[0, 1]", "mu
 CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"), "gaussians.hull_masks": ("real", "all"),
            "losses.photometric_space": ("linear", "srgb"),
            "losses.photometric_error": tuple(PIXEL_ERRORS), "multiview.target_mode": ("nearest-k", "random"),
+           "runtime.compile": COMPILE_BACKENDS,
            "shading.light_falloff": ("none", "inverse_square")}
 
 

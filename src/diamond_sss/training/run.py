@@ -42,6 +42,12 @@ def train_run(data: Path, out: Path, config: TrainConfig, *, split: str = "train
     return trainer.run(resume=resume, on_step=on_step)
 
 
+def selected_images(data: Path, split: str, regime: str, seed: int) -> int:
+    """How many training images ``regime`` selects from ``data``'s ``split`` under ``seed`` (reads the transforms,
+    no image)."""
+    return len(select_regime(OLATDataset(data, split), regime, seed).observations)
+
+
 def train_from_preset(data: Path, out: Path, *, preset: str = "diamond", overrides: dict[str, Any] | None = None,
                       config_file: Path | None = None, sets: Sequence[str] = (), **options: Any) -> TrainResult:
     """:func:`train_run` with the configuration resolved from ``preset``, ``config_file``, ``overrides`` and ``sets``

@@ -60,6 +60,7 @@ from diamond_sss.training.objective import TargetBatch, image_objective
 from diamond_sss.training.run_folder import check_resumable, finished_summary
 from diamond_sss.training.schedules import exponential_lr, linear_warmup, step_decay
 from diamond_sss.utils import rng
+from diamond_sss.utils.compiling import compiled
 from diamond_sss.utils.device import cpu_threads, resolve_device, to_device
 from diamond_sss.utils.io import atomic_write_json
 
@@ -209,6 +210,8 @@ class Trainer:
         self._target_silhouettes: dict[int, Tensor] = {}
         self.loss_log = LossLog()
         self.lpips = load_lpips(cfg.runtime.lpips_weights or None) if cfg.losses.lambda_lpips > 0 else None
+        self._objective = compiled(image_objective, cfg.runtime.compile)
+        self._multiview_losses = compiled(multiview_losses_batched, cfg.runtime.compile)
         if self.lpips is not None:
             self.lpips = self.lpips.to(self.device)
         mv = cfg.multiview
@@ -385,13 +388,13 @@ class Trainer:
         """
         groups = self._batch_groups
         if len(groups) == 1 and groups[0].target is target:
-            return image_objective(render, target, self.cfg, self.lpips)
+            return self._objective(render, target, self.cfg, self.lpips)
         batch = target.rgb.shape[0]
         terms: dict[str, Tensor] = {}
         for group in groups:
             part = area_downsample_render(render, group.items, group.height, group.width)
             share = group.items.numel() / batch
-            for name, value in image_objective(part, group.target, self.cfg, self.lpips).items():
+            for name, value in self._objective(part, group.target, self.cfg, self.lpips).items():
                 terms[name] = terms[name] + share * value if name in terms else share * value
         return terms
 
@@ -449,7 +452,7 @@ class Trainer:
             host_uv[p, : pixels.shape[0]] = pixels
             host_valid[p, : pixels.shape[0]] = True
         uv, valid = to_device(host_uv, self.device), to_device(host_valid, self.device)
-        terms = multiview_losses_batched(
+        terms = self._multiview_losses(
             render.gbuffer.depth[src, ..., 0], render.gbuffer.alpha[src, ..., 0], uv, target.viewmats[src],
             target.Ks[src], tgt_depth, tgt_alpha, silhouettes, self.viewmats[tgt], tgt_K,
             self.bounds.near, self.bounds.far, self.mv_cfg, src_uv_valid=valid,
@@ -478,6 +481,8 @@ class Trainer:
         """
         cfg = self.cfg
         torch.manual_seed(cfg.schedule.seed * 1_000_003 + step)
+        if scene.compiled_with != cfg.runtime.compile:
+            scene.compile_shading(cfg.runtime.compile)
         self.set_learning_rates(optimizers, step)
         _, target, light_pos, light_rgb = self.draw_batch(step)
         cached_lights = None
