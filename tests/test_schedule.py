@@ -27,10 +27,14 @@ DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, 
     "lr_decay_step": 700, "lr_decay_factor": 0.3, "sss_light_depth": 64, "sss_light_depth_every": 10,
     "sss_lr_warmup_steps": 100, "sss_angular_inputs": True,
 }
+SPARSE_1000 = {  # a sparse capture's densification threshold and loss weights, the sss3dgs preset's (session 46)
+    "densify_grad_threshold": 0.0002, "lambda_dssim": 0.2, "lambda_normal": 0.02, "lambda_base_color": 0.005,
+    "lambda_base_color_smooth": 0.006, "lambda_metallic_smooth": 0.002, "lambda_roughness_smooth": 0.002,
+}
 
 
 def test_demo_overrides_are_unchanged():
-    assert short_schedule(1000) == DEMO_OVERRIDES_1000
+    assert short_schedule(1000) == {**DEMO_OVERRIDES_1000, **SPARSE_1000}
     for n in (150, 300, 400, 1000, 1234):
         scaled = short_schedule(n)
         assert (scaled["densify_from_iter"], scaled["densification_interval"]) == (n // 4, n // 8)

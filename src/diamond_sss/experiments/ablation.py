@@ -38,7 +38,9 @@ VARIANTS: dict[str, tuple[str, dict[str, float | bool]]] = {
 """``+both`` draws its targets among the views with an image (real or generated); ``+both-all-targets`` also among
 the lattice views without one (depth term only), the default before issue 58. ``sss3dgs+...``: the terms at the
 ``diamond`` preset's weights on the ``sss3dgs`` preset, whose other settings score higher on sparse captures
-(issue 58)."""
+(issue 58). Under the short-run settings (:func:`~diamond_sss.training.config.short_schedule`) a sparse regime gives
+every variant those settings (``SPARSE_FROM_SSS3DGS``), so there the two families differ only in unused LPIPS weights;
+pass ``--set`` or other overrides to compare the ``diamond`` preset's own."""
 DEFAULT_VARIANTS = ("sss3dgs", "diamond-no-mv", "+silhouette", "+depth", "+both", "+both-all-targets")
 """What `diamond-sss ablate` and benchmarks/ablation.py train unless told: Tab. 2's rows and the SSS-3DGS baseline."""
 REGIMES = ("all", "views=5,lights=6", "views=3,lights=3")
