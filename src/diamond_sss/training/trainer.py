@@ -483,6 +483,9 @@ class Trainer:
         torch.manual_seed(cfg.schedule.seed * 1_000_003 + step)
         if scene.compiled_with != cfg.runtime.compile:
             scene.compile_shading(cfg.runtime.compile)
+            if cfg.runtime.compile != "off":
+                logger.info("runtime.compile=%s: the first steps compile the render and the losses (~30 s on CUDA), "
+                            "and once more when the Gaussian count first changes", cfg.runtime.compile)
         self.set_learning_rates(optimizers, step)
         _, target, light_pos, light_rgb = self.draw_batch(step)
         cached_lights = None
