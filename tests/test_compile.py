@@ -97,6 +97,16 @@ def test_an_unknown_compile_backend_is_refused_by_key():
         make_config("diamond", overrides={"compile": "triton"})
 
 
+def test_inductor_without_its_compiler_is_refused_before_training_naming_the_key(capture, tmp_path, monkeypatch):
+    from diamond_sss.utils import compiling
+
+    monkeypatch.setattr(compiling.shutil, "which", lambda name: None)  # no C++ compiler on PATH
+    cfg = make_config("diamond", overrides={**TINY, "device": "cpu", "compile": "inductor"})
+    with pytest.raises(ValueError, match=r"runtime.compile' is 'inductor' but inductor on the CPU needs a C\+\+"):
+        Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False)
+    assert compiling.compile_unavailable("aot_eager", torch.device("cpu")) is None
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 @pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="inductor on CUDA needs triton")

@@ -60,7 +60,7 @@ from diamond_sss.training.objective import TargetBatch, image_objective
 from diamond_sss.training.run_folder import check_resumable, finished_summary
 from diamond_sss.training.schedules import exponential_lr, linear_warmup, step_decay
 from diamond_sss.utils import rng
-from diamond_sss.utils.compiling import compiled
+from diamond_sss.utils.compiling import compile_unavailable, compiled
 from diamond_sss.utils.device import cpu_threads, resolve_device, to_device
 from diamond_sss.utils.io import atomic_write_json
 
@@ -197,6 +197,9 @@ class Trainer:
         self.run_dir = None if run_dir is None else Path(run_dir)
         self.show_progress = show_progress
         self.device = resolve_device(cfg.runtime.device)
+        if (why := compile_unavailable(cfg.runtime.compile, self.device)) is not None:
+            raise ValueError(f"config key 'runtime.compile' is '{cfg.runtime.compile}' but {why}: set compile=off "
+                             "(eager, the default)")
         self.index = [(s, i) for s, source in enumerate(sources) for i in range(len(source.dataset))]
         self.bounds = self.lattice.bounds
         self.union = unify_lattices([source.dataset for source in sources])

@@ -10,6 +10,8 @@ objective and multi-view losses. Measured on an H100 (benchmarks/RESULTS.md, ses
 
 from __future__ import annotations
 
+import importlib.util
+import shutil
 import warnings
 from collections.abc import Callable
 from typing import TypeVar
@@ -37,3 +39,15 @@ def compiled(fn: F, backend: str) -> F:
     # default) every new count would compile again, up to its cache limit, then run eagerly.
     torch._dynamo.config.force_parameter_static_shapes = False
     return torch.compile(fn, backend=backend)
+
+
+def compile_unavailable(backend: str, device: torch.device) -> str | None:
+    """Why ``backend`` cannot compile for ``device`` here (``None``: it can): inductor needs triton on CUDA and a C++
+    compiler on the CPU; ``off`` and ``aot_eager`` need neither."""
+    if backend != "inductor":
+        return None
+    if device.type == "cuda" and importlib.util.find_spec("triton") is None:
+        return "inductor on CUDA needs triton (CUDA builds of torch install it), which is not installed"
+    if device.type == "cpu" and not any(shutil.which(name) for name in ("c++", "g++", "clang++")):
+        return "inductor on the CPU needs a C++ compiler (c++, g++ or clang++ on PATH), and none was found"
+    return None
