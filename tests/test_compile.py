@@ -12,6 +12,7 @@ import torch
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture
 from diamond_sss.training.overrides import make_config
+from diamond_sss.training.run import train_run
 from diamond_sss.training.trainer import ImageSource, Trainer
 
 TINY = {"num_gaussians": 200, "batch_size": 2, "lambda_lpips": 0.0, "raytrace_gaussians": 32, "raytrace_every": 2,
@@ -104,6 +105,9 @@ def test_inductor_without_its_compiler_is_refused_before_training_naming_the_key
     cfg = make_config("diamond", overrides={**TINY, "device": "cpu", "compile": "inductor"})
     with pytest.raises(ValueError, match=r"runtime.compile' is 'inductor' but inductor on the CPU needs a C\+\+"):
         Trainer(cfg, [ImageSource(OLATDataset(capture))], tmp_path / "run", show_progress=False)
+    with pytest.raises(ValueError, match="runtime.compile"):
+        train_run(capture, tmp_path / "run", cfg)
+    assert not (tmp_path / "run").exists()  # refused before the run folder is written
     assert compiling.compile_unavailable("aot_eager", torch.device("cpu")) is None
 
 

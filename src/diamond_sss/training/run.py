@@ -33,12 +33,12 @@ def train_run(data: Path, out: Path, config: TrainConfig, *, split: str = "train
     out = Path(out)
     if resume:
         check_same_images(out, data, regime, digest)
+    sources = [ImageSource(dataset.subset(selection.observations), 1.0), *extra_sources]
+    trainer = Trainer(config, sources, out, show_progress=show_progress)  # refuses what cannot run, writes nothing
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "regime.json", selection.to_json())
     atomic_write_json(out / "data.json", {"data": str(Path(data).resolve()), "split": split, "regime": regime,
                                           "content_sha256": digest})
-    sources = [ImageSource(dataset.subset(selection.observations), 1.0), *extra_sources]
-    trainer = Trainer(config, sources, out, show_progress=show_progress)
     return trainer.run(resume=resume, on_step=on_step)
 
 
