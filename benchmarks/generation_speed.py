@@ -102,6 +102,7 @@ def run(data: Path, regime: str, prelim_run: Path | None, work: Path, results: P
     settings (default: its defaults, the shipped models)."""
     if any(count is not None and count < 0 for count in threads):
         raise ValueError(f"--threads must be auto or >= 0 (0: torch's default), got {threads}")
+    config = checked_config(config)  # a bad --device stops here, before the preliminary reconstruction trains
     if prelim_run is None:
         prelim_run = work / "prelim"
         train_from_preset(data, prelim_run, preset="sss3dgs", overrides=short_schedule(1000), regime=regime,
@@ -112,11 +113,11 @@ def run(data: Path, regime: str, prelim_run: Path | None, work: Path, results: P
             command = training_command(data, work / "background") if condition == "beside" else None
             with beside(command):
                 row = time_stages(data, regime, prelim_run, work / "stages",
-                                  replace(config or PipelineConfig(), generation_threads=count))
+                                  replace(config, generation_threads=count))
             rows.append({"threads": count, "condition": condition, **row})
             print(json.dumps(rows[-1]), flush=True)
     results.mkdir(parents=True, exist_ok=True)
-    device = (config or PipelineConfig()).device
+    device = config.device
     meta = {"data": str(data), "regime": regime, "prelim_run": str(prelim_run), "device": device}
     (results / "generation_speed.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
     lines = [f"Diffusion stages of `diamond-sss run` on {data} (`{regime}`), device {device}, fresh cache.", "",

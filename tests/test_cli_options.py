@@ -229,3 +229,6 @@ def test_diffusion_devices_default_to_auto_and_resolve_to_cuda_when_available(tm
     assert checked_config(PipelineConfig()).device == expected
     assert checked_config(PipelineConfig(device="cpu")).device == "cpu"
     assert checked_config(PipelineConfig(device="cuda")).device == "cuda"  # used (or refused) where a stage runs
+    with pytest.raises(ValueError, match=r"pipeline config 'device' \(--device\) must be auto \| cpu \| cuda\[:i\], "
+                                         r"got 'gpu'"):
+        checked_config(PipelineConfig(device="gpu"))

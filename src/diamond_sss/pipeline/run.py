@@ -369,6 +369,12 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
             geometry_source(cfg.nvs_geometry)
         except GeometryError as exc:
             raise ValueError(f"pipeline config 'nvs_geometry': {exc}") from exc
+    if cfg.device != "auto":
+        try:
+            torch.device(cfg.device)  # a device that torch names; CUDA's presence is checked where a stage runs
+        except RuntimeError as exc:
+            raise ValueError(f"pipeline config 'device' (--device) must be auto | cpu | cuda[:i], got "
+                             f"{cfg.device!r}") from exc
     return replace(cfg, device=str(resolve_device(cfg.device))) if cfg.device == "auto" else cfg
 
 
