@@ -68,7 +68,7 @@ def test_set_refuses_non_finite_integers_and_config_files(tmp_path):
 
 def test_config_lists_every_key_with_its_preset_value_and_meaning(capsys):
     rows = describe_config("sss3dgs")
-    assert [key for key, _, _, _ in rows] == list(FIELDS) and len(rows) == 87
+    assert [key for key, _, _, _ in rows] == list(FIELDS) and len(rows) == 88
     assert [flat for _, flat, _, _ in rows] == list(FLAT_KEYS)
     values = {key: value for key, _, value, _ in rows}
     assert values["densify.grow_grad2d"] == 0.0002 and values["losses.lambda_sil"] == 0.0

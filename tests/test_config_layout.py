@@ -34,7 +34,7 @@ def test_a_flat_config_json_of_an_earlier_run_loads_to_the_same_configuration(tm
              "sss_light_depth", "sss_light_depth_every", "sss_lr_warmup_steps",
              "sss_visibility_gradient", "average_last", "sss_position_freqs",
              "photometric_error", "keep_checkpoints", "mv_sil_tolerance", "mv_depth_tolerance",
-             "mv_start_fraction", "compile")  # keys added since: their defaults
+             "mv_start_fraction", "compile", "mv_source_gradient")  # keys added since: their defaults
     moved = {"synthetic_weight"}  # the pipeline's since issue 61: left out
     assert len(flat) == 72 and {k: v for k, v in loaded.flat().items() if k not in newer} == {
         k: v for k, v in flat.items() if k not in moved}
@@ -43,11 +43,11 @@ def test_a_flat_config_json_of_an_earlier_run_loads_to_the_same_configuration(tm
 
 
 def test_every_key_has_one_dotted_and_one_flat_name():
-    assert len(FIELDS) == len(FLAT_KEYS) == 87
+    assert len(FIELDS) == len(FLAT_KEYS) == 88
     newer = {"prune_opa", "hull_masks", "light_falloff", "sss_angular_inputs", "sss_light_depth",
              "sss_light_depth_every", "sss_lr_warmup_steps", "sss_visibility_gradient", "average_last",
              "sss_position_freqs", "photometric_error", "keep_checkpoints", "mv_sil_tolerance",
-             "mv_depth_tolerance", "mv_start_fraction", "compile"}
+             "mv_depth_tolerance", "mv_start_fraction", "compile", "mv_source_gradient"}
     assert set(json.loads(FLAT_RUN_CONFIG.read_text())) - {"synthetic_weight"} | newer == set(FLAT_KEYS)
     assert all(canonical_key(flat) == dotted and canonical_key(dotted) == dotted for flat, dotted in FLAT_KEYS.items())
     assert canonical_key("densify") == "densify.enabled" and canonical_key("mv_nearest_k") == "multiview.nearest_k"

@@ -604,6 +604,52 @@ def test_trainer_terms_start_late_and_unobserved_targets_have_no_silhouette(tmp_
         make_config("diamond", overrides={"mv_start_fraction": 1.0})  # when the config is made, not at a step
 
 
+@pytest.mark.parametrize("term", ["mv_silhouette", "mv_depth"])
+def test_centres_source_gradient_holds_the_blending_weights(tmp_path, term):
+    """``mv_source_gradient=centres``: the same loss values (to float rounding); the terms' gradient through the source depth reaches the
+    Gaussian centres (as with ``blend``), never the opacities, scales or rotations. The depth term still reaches
+    them through the target depth, so it is checked with the targets' render held fixed."""
+    make_capture(tmp_path, views=4, lights=2, size=16)
+    dataset = OLATDataset(tmp_path)
+    results = {}
+    for mode in ("blend", "centres"):
+        cfg = make_config("diamond", overrides={
+            "iterations": 10, "num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "densify": False,
+            "device": "cpu", "mv_pixels_per_pair": 64, "mv_pairs_per_step": 4, "mv_target_mode": "random",
+            "mv_source_gradient": mode})
+        trainer = Trainer(cfg, [ImageSource(dataset)], None, show_progress=False)
+        scene = trainer.build_scene()
+        _, target, light_pos, light_rgb = trainer.draw_batch(0)
+        render = scene.render(target.viewmats, target.Ks, trainer.width, trainer.height, light_pos, light_rgb)
+        _hold_target_renders(scene)
+        value = trainer.multiview_terms(scene, render, target, 3)[term]
+        scene.zero_grad()
+        grads = dict(zip(("means", "opacities", "scales", "quats"), torch.autograd.grad(
+            value, [scene.gaussians.params[name] for name in ("means", "opacities", "scales", "quats")],
+            allow_unused=True)))
+        results[mode] = (value.detach(), grads)
+    (blend_value, blend), (centres_value, centres) = results["blend"], results["centres"]
+    assert blend_value > 0 and torch.allclose(blend_value, centres_value, rtol=1e-5)  # one raster or another
+    assert centres["means"].abs().sum() > 0 and torch.allclose(centres["means"], blend["means"], atol=1e-7)
+    for name in ("opacities", "scales", "quats"):
+        assert blend[name] is not None and blend[name].abs().sum() > 0
+        assert centres[name] is None or not centres[name].any()
+
+
+def _hold_target_renders(scene) -> None:
+    """Make ``scene``'s plain geometry renders (the target views') carry no gradient; centres-only ones keep theirs."""
+    render_geometry = scene.render_geometry
+
+    def held(*args, centres_only=False, **kwargs):
+        raster = render_geometry(*args, centres_only=centres_only, **kwargs)
+        if centres_only:
+            return raster
+        return type(raster)(**{field: value.detach() if isinstance(value, torch.Tensor) else value
+                               for field, value in vars(raster).items()})
+
+    scene.render_geometry = held
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_cuda_matches_cpu():

@@ -30,6 +30,7 @@ DEMO_OVERRIDES_1000 = {  # short_schedule(1000) before the scalers were merged, 
 SPARSE_1000 = {  # a sparse capture's densification threshold and loss weights, the sss3dgs preset's (session 46)
     "densify_grad_threshold": 0.0002, "lambda_dssim": 0.2, "lambda_normal": 0.02, "lambda_base_color": 0.005,
     "lambda_base_color_smooth": 0.006, "lambda_metallic_smooth": 0.002, "lambda_roughness_smooth": 0.002,
+    "mv_source_gradient": "centres",  # the multi-view terms move the Gaussian centres only (session 47)
 }
 
 

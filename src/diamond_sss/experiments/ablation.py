@@ -24,7 +24,7 @@ from diamond_sss.training.overrides import checked_values, make_config
 from diamond_sss.training.run import selected_images, train_run
 from diamond_sss.utils.io import atomic_write_json, atomic_write_text
 
-VARIANTS: dict[str, tuple[str, dict[str, float | bool]]] = {
+VARIANTS: dict[str, tuple[str, dict[str, float | bool | str]]] = {
     "sss3dgs": ("sss3dgs", {}),
     "diamond-no-mv": ("diamond", {"lambda_sil": 0.0, "lambda_depth": 0.0}),
     "+silhouette": ("diamond", {"lambda_depth": 0.0}),
@@ -34,13 +34,21 @@ VARIANTS: dict[str, tuple[str, dict[str, float | bool]]] = {
     "sss3dgs+silhouette": ("sss3dgs", {"lambda_sil": Losses.lambda_sil}),
     "sss3dgs+depth": ("sss3dgs", {"lambda_depth": Losses.lambda_depth}),
     "sss3dgs+both": ("sss3dgs", {"lambda_sil": Losses.lambda_sil, "lambda_depth": Losses.lambda_depth}),
+    "+both-blend": ("diamond", {"mv_source_gradient": "blend"}),
+    "+both-centres": ("diamond", {"mv_source_gradient": "centres"}),
+    "sss3dgs+both-blend": ("sss3dgs", {"lambda_sil": Losses.lambda_sil, "lambda_depth": Losses.lambda_depth,
+                                       "mv_source_gradient": "blend"}),
+    "sss3dgs+both-centres": ("sss3dgs", {"lambda_sil": Losses.lambda_sil, "lambda_depth": Losses.lambda_depth,
+                                         "mv_source_gradient": "centres"}),
 }
 """``+both`` draws its targets among the views with an image (real or generated); ``+both-all-targets`` also among
 the lattice views without one (depth term only), the default before issue 58. ``sss3dgs+...``: the terms at the
 ``diamond`` preset's weights on the ``sss3dgs`` preset, whose other settings score higher on sparse captures
 (issue 58). Under the short-run settings (:func:`~diamond_sss.training.config.short_schedule`) a sparse regime gives
 every variant those settings (``SPARSE_FROM_SSS3DGS``), so there the two families differ only in unused LPIPS weights;
-pass ``--set`` or other overrides to compare the ``diamond`` preset's own."""
+pass ``--set`` or other overrides to compare the ``diamond`` preset's own. The terms move what the settings say
+through the source views' depth (``multiview.source_gradient``: ``centres`` in a sparse short run,
+``SPARSE_MULTIVIEW``, ``blend`` otherwise); ``...-blend`` and ``...-centres`` set it."""
 DEFAULT_VARIANTS = ("sss3dgs", "diamond-no-mv", "+silhouette", "+depth", "+both", "+both-all-targets")
 """What `diamond-sss ablate` and benchmarks/ablation.py train unless told: Tab. 2's rows and the SSS-3DGS baseline."""
 REGIMES = ("all", "views=5,lights=6", "views=3,lights=3")

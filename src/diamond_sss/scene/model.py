@@ -166,9 +166,16 @@ class RelightableScene(nn.Module):
         return SceneRender(shading=shading, gbuffer=gbuffer, raster=raster)
 
     def render_geometry(self, viewmats: Tensor, Ks: Tensor, width: int, height: int,
-                        backend: str = "auto") -> RasterOutput:
-        """Depth and alpha only (one constant feature channel): the cheap pass of the multi-view losses."""
+                        backend: str = "auto", centres_only: bool = False) -> RasterOutput:
+        """Depth and alpha only (one constant feature channel): the cheap pass of the multi-view losses.
+
+        ``centres_only``: the same images, but gradients reach only the Gaussians' centres; the opacities, scales
+        and rotations that set the blending weights ``w_k`` of the expected depth ``sum_k w_k z_k / sum_k w_k``
+        are held (detached).
+        """
         g = self.gaussians
         ones = torch.ones(g.num_gaussians, 1, device=g.means.device, dtype=g.means.dtype)
-        return rasterize(g.means, g.quats, g.scales, g.opacities, ones, viewmats, Ks, width, height,
-                         backend=backend)
+        quats, scales, opacities = g.quats, g.scales, g.opacities
+        if centres_only:
+            quats, scales, opacities = quats.detach(), scales.detach(), opacities.detach()
+        return rasterize(g.means, quats, scales, opacities, ones, viewmats, Ks, width, height, backend=backend)

@@ -164,6 +164,7 @@ FRACTIONS = {"losses.lambda_dssim": "[0, 1]", "densify.prune_opa": "[0, 1]", "mu
 CHOICES = {"gaussians.init": ("auto", "ply", "hull", "random"), "gaussians.hull_masks": ("real", "all"),
            "losses.photometric_space": ("linear", "srgb"),
            "losses.photometric_error": tuple(PIXEL_ERRORS), "multiview.target_mode": ("nearest-k", "random"),
+           "multiview.source_gradient": ("blend", "centres"),
            "runtime.compile": COMPILE_BACKENDS,
            "shading.light_falloff": ("none", "inverse_square")}
 

@@ -421,7 +421,9 @@ class Trainer:
 
         Nothing (an empty dict) before ``multiview.start_fraction * schedule.iterations`` steps. A target view with
         no image has no silhouette: it is drawn for the depth term only (its own rendered alpha, detached, filters
-        that term), and gives no silhouette correspondences.
+        that term), and gives no silhouette correspondences. With ``multiview.source_gradient = centres`` the
+        sources' depth is rendered again with the blending weights held: the terms then move Gaussian centres only,
+        not the opacities through which the silhouette term otherwise deepens the expected depth (issue 58).
         """
         cfg = self.cfg
         if step < cfg.multiview.start_fraction * cfg.schedule.iterations:
@@ -455,8 +457,13 @@ class Trainer:
             host_uv[p, : pixels.shape[0]] = pixels
             host_valid[p, : pixels.shape[0]] = True
         uv, valid = to_device(host_uv, self.device), to_device(host_valid, self.device)
+        depth = render.gbuffer.depth
+        if cfg.multiview.source_gradient == "centres":
+            depth = scene.render_geometry(target.viewmats, target.Ks, depth.shape[-2], depth.shape[-3],
+                                          centres_only=True).depth
+        src_depth = depth[src, ..., 0]
         terms = self._multiview_losses(
-            render.gbuffer.depth[src, ..., 0], render.gbuffer.alpha[src, ..., 0], uv, target.viewmats[src],
+            src_depth, render.gbuffer.alpha[src, ..., 0], uv, target.viewmats[src],
             target.Ks[src], tgt_depth, tgt_alpha, silhouettes, self.viewmats[tgt], tgt_K,
             self.bounds.near, self.bounds.far, self.mv_cfg, src_uv_valid=valid,
             tgt_silhouette_valid=to_device(torch.tensor([t in self.view_silhouettes for t in targets]), self.device),
