@@ -378,8 +378,8 @@ the Gaussian centres through the source views' depth (``multiview.source_gradien
 the silhouette term lowers the front Gaussians' opacity, which moves the expected depth behind the surface (bias
 +0.03 to +0.13 scene units, radius 1). Measured on held-out objects given as their 9 images, 1000 steps, the
 ``sss3dgs`` weights, both terms (issue 58, benchmarks/RESULTS.md, session 47): depth error .087 / .127 / .083 / .090
--> .064 / .061 / .060 / .044 (terms off: .061 / .060 / .057 / .036); PSNR 17.93 / 19.81 / 18.39 / 22.32 -> 18.06 /
-19.90 / 18.60 / 21.75 (knot/jade, blob/wax decide; knot/skin, bust/soap report; mean 19.61 -> 19.58) and on training
+-> .063 / .062 / .061 / .044 (terms off: .061 / .060 / .057 / .036); PSNR 17.93 / 19.81 / 18.39 / 22.32 -> 17.98 /
+20.03 / 18.72 / 21.73 (knot/jade, blob/wax decide; knot/skin, bust/soap report; mean 19.61 both) and on training
 seed 1 17.56 / 19.88 -> 17.98 / 20.06; at 30 images 23.75 / 25.13 -> 23.44 / 24.99, depth error .070 / .087 -> .052 /
 .054."""
 
