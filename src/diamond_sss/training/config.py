@@ -379,9 +379,10 @@ the silhouette term lowers the front Gaussians' opacity, which moves the expecte
 +0.03 to +0.13 scene units, radius 1). Measured on held-out objects given as their 9 images, 1000 steps, the
 ``sss3dgs`` weights, both terms (issue 58, benchmarks/RESULTS.md, session 47): depth error .087 / .127 / .083 / .090
 -> .063 / .062 / .061 / .044 (terms off: .061 / .060 / .057 / .036); PSNR 17.93 / 19.81 / 18.39 / 22.32 -> 17.98 /
-20.03 / 18.72 / 21.73 (knot/jade, blob/wax decide; knot/skin, bust/soap report; mean 19.61 both) and on training
-seed 1 17.56 / 19.88 -> 17.98 / 20.06; at 30 images 23.75 / 25.13 -> 23.44 / 24.99, depth error .070 / .087 -> .052 /
-.054."""
+20.03 / 18.72 / 21.73 (knot/jade, blob/wax decide; knot/skin, bust/soap report; mean 19.61 both), on training seed 1
+17.56 / 19.88 / 18.75 / 22.49 -> 17.98 / 20.06 / 18.30 / 21.54 (the deciding objects gain, bust/soap loses 0.6-0.95;
+mean of the 8 runs 19.64 -> 19.54, terms off 19.52); at 30 images, 2 seeds, mean 24.44 -> 24.25 (off 24.21), depth
+error .070 / .087 -> .052 / .054."""
 
 DENSE_MIN_IMAGES = 100
 """A run whose regime selects at least this many training images takes a dense capture's short-run settings
