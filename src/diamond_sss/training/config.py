@@ -382,7 +382,8 @@ the silhouette term lowers the front Gaussians' opacity, which moves the expecte
 20.03 / 18.72 / 21.73 (knot/jade, blob/wax decide; knot/skin, bust/soap report; mean 19.61 both), on training seed 1
 17.56 / 19.88 / 18.75 / 22.49 -> 17.98 / 20.06 / 18.30 / 21.54 (the deciding objects gain, bust/soap loses 0.6-0.95;
 mean of the 8 runs 19.64 -> 19.54, terms off 19.52); at 30 images, 2 seeds, mean 24.44 -> 24.25 (off 24.21), depth
-error .070 / .087 -> .052 / .054."""
+error .070 / .087 -> .052 / .054. Its cost, a second geometry pass over the batch views: 200 steps on the demo's 9
+images (64 px, 8k Gaussians, one CPU thread) 24-26 s -> 33-34 s."""
 
 DENSE_MIN_IMAGES = 100
 """A run whose regime selects at least this many training images takes a dense capture's short-run settings

@@ -422,8 +422,9 @@ class Trainer:
         Nothing (an empty dict) before ``multiview.start_fraction * schedule.iterations`` steps. A target view with
         no image has no silhouette: it is drawn for the depth term only (its own rendered alpha, detached, filters
         that term), and gives no silhouette correspondences. With ``multiview.source_gradient = centres`` the
-        sources' depth is rendered again with the blending weights held: the terms then move Gaussian centres only,
-        not the opacities through which the silhouette term otherwise deepens the expected depth (issue 58).
+        sources' depth is rendered again with the blending weights held (one more geometry pass over the batch
+        views): the terms then move Gaussian centres only, not the opacities through which the silhouette term
+        otherwise deepens the expected depth (issue 58).
         """
         cfg = self.cfg
         if step < cfg.multiview.start_fraction * cfg.schedule.iterations:
