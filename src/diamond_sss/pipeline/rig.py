@@ -5,10 +5,14 @@ lattice-aware stages would find nothing to generate. Its lattice is made here in
 
 * sampled: ``count`` cameras placed where the real ones could be (on their distance band from the object's
   centre, in their elevation band widened by :data:`ELEVATION_MARGIN_DEG`, aimed at the centre, upright, with the
-  intrinsics and distance of the nearest real camera), spread by farthest-point sampling away from the real
+  distance and image size of the nearest real camera and its intrinsics, or framed as the priors' training cameras
+  (:func:`framed_intrinsics`: a zoom on the object)), spread by farthest-point sampling away from the real
   views; lights the same way on the real lights' band, with the nearest real light's distance and intensity; or
 * read from a rig file: a light stage's full layout, a transforms file with top-level ``cameras`` and ``lights``
   (:func:`~diamond_sss.data.transforms.parse_rig`); its cameras and lights at a real one's place are that one.
+
+A capture with a lattice keeps it, its cameras without an image framed as the priors' when asked
+(:func:`framed_capture_lattice`).
 
 Either way the lattice is written as ``<folder>/transforms_lattice.json``: the real cameras and lights first
 (their indices are the capture's), the new ones after, and the real images of the regime as its frames, so that
@@ -29,16 +33,20 @@ import torch
 from torch import Tensor
 
 from diamond_sss.data.conventions import (
+    camera_centers,
     intrinsics_from_fov,
     intrinsics_matrix,
     look_at_opengl_c2w,
     mean_up_vector,
     opencv_w2c_to_opengl_c2w,
     opengl_c2w_to_opencv_w2c,
+    pixel_ray_directions,
     project_points,
+    world_to_camera,
 )
 from diamond_sss.data.dataset import OLATDataset, directions_from
 from diamond_sss.data.transforms import parse_rig
+from diamond_sss.diffusion.nvs.canonical import PRIOR_FRAME_FILL
 from diamond_sss.errors import DataError
 from diamond_sss.utils.io import atomic_write_json
 
@@ -49,6 +57,9 @@ ELEVATION_MARGIN_DEG = 15.0
 
 CANDIDATES = 4096
 """Directions on a Fibonacci sphere among which the sampled cameras and lights are chosen."""
+
+RIG_FRAMINGS = ("real", "prior")
+"""How placed cameras frame the object: as the nearest real camera does, or as the priors' training cameras did."""
 
 LATTICE_SPLIT = "lattice"
 """The split name of the written lattice (``transforms_lattice.json``)."""
@@ -132,19 +143,68 @@ def light_entry(position: Tensor, intensity: Tensor) -> dict:
     return {"position": position.double().tolist(), "intensity": intensity.double().tolist()}
 
 
-def sampled_rig(capture: OLATDataset, views: int, lights: int, max_view_angle_deg: float = 0.0
-                ) -> tuple[list[dict], list[dict]]:
+def silhouette_radius(capture: OLATDataset, observations: Sequence[int], center: Tensor) -> float:
+    """Radius (scene units) of the sphere about ``center`` that the silhouettes of ``observations`` span: the largest
+    ``d sin(alpha)`` over the images, ``d`` the camera's distance from ``center`` and ``alpha`` the widest angle
+    between the ray to ``center`` and a ray through a pixel of the image's mask (> 0.5). A :class:`DataError` names
+    the capture when every mask is empty."""
+    center = center.double()
+    radius = 0.0
+    for index in observations:
+        sample, camera = capture.load(index), capture.cameras[capture.observations[index].view]
+        inside = sample.mask[..., 0] > 0.5
+        if not bool(inside.any()):
+            continue
+        eye = camera_centers(camera.w2c.double())
+        axis = (center - eye) / (center - eye).norm()
+        rays = pixel_ray_directions(camera.w2c.double(), camera.K.double(), camera.height, camera.width)[inside]
+        alpha = math.acos(max(-1.0, min(1.0, float((rays @ axis).min()))))
+        radius = max(radius, float((center - eye).norm()) * math.sin(min(alpha, math.pi / 2)))
+    if radius <= 0.0:
+        raise DataError(f"{capture.json_path}: every mask of the {len(observations)} images is empty: no object to "
+                        "frame the placed cameras on (rig_framing=prior); give masks or use rig_framing=real")
+    return radius
+
+
+def framed_intrinsics(center: Tensor, radius: float, width: int, height: int, fill: float = PRIOR_FRAME_FILL
+                      ) -> Tensor:
+    """``K [3,3]`` (float64) in which a sphere of ``radius`` about ``center`` (camera space, OpenCV, ``z > 0``) spans
+    ``fill`` of the shorter half-side around the image's centre, where its centre projects:
+    ``f = fill min(W, H) / 2 / tan(asin(radius / |c|))``, ``(cx, cy) = (W, H) / 2 - f (c_x, c_y) / c_z``."""
+    center = center.double()
+    distance = float(center.norm())
+    if not (0.0 < radius < distance and float(center[2]) > 0.0):
+        raise ValueError(f"need 0 < radius < distance with the centre in front, got radius {radius} about "
+                         f"{center.tolist()}")
+    focal = fill * 0.5 * min(width, height) / math.tan(math.asin(radius / distance))
+    shift = focal * center[:2] / center[2]
+    return intrinsics_matrix(focal, focal, 0.5 * width - float(shift[0]), 0.5 * height - float(shift[1])).double()
+
+
+def sampled_rig(capture: OLATDataset, views: int, lights: int, max_view_angle_deg: float = 0.0,
+                framing: str = "real", observations: Sequence[int] = ()) -> tuple[list[dict], list[dict]]:
     """``views`` new cameras (each within ``max_view_angle_deg`` of a real one; 0: anywhere) and ``lights`` new
-    lights around ``capture`` (full resolution), as ``cameras`` / ``lights`` entries (see the module docstring)."""
+    lights around ``capture`` (full resolution), as ``cameras`` / ``lights`` entries (see the module docstring).
+    ``framing="prior"`` gives each new camera the focal length and centred principal point in which the object
+    (:func:`silhouette_radius` of ``observations``) fills its image as the priors' training cameras framed theirs
+    (:data:`~diamond_sss.diffusion.nvs.canonical.PRIOR_FRAME_FILL`); ``"real"`` the nearest real camera's."""
+    if framing not in RIG_FRAMINGS:
+        raise ValueError(f"framing must be one of {RIG_FRAMINGS}, got {framing!r}")
     center = capture.bounds.center.double()
     up = mean_up_vector(capture.viewmats)
     centers = capture.camera_centers.double()
     real_dirs = directions_from(centers, center).double()
     directions, nearest = place_directions(real_dirs, up, views, max_angle_deg=max_view_angle_deg)
+    radius = silhouette_radius(capture, observations, center) if framing == "prior" and views else None
     cameras = []
     for direction, source in zip(directions, nearest.tolist()):
-        eye = center + float((centers[source] - center).norm()) * direction
-        cameras.append(camera_entry(capture, source, look_at_opengl_c2w(eye, center, up)))
+        distance = float((centers[source] - center).norm())
+        entry = camera_entry(capture, source, look_at_opengl_c2w(center + distance * direction, center, up))
+        if radius is not None:
+            K = framed_intrinsics(torch.tensor([0.0, 0.0, distance]), min(radius, 0.99 * distance), entry["w"],
+                                  entry["h"])
+            entry.update(_intrinsics_entry(K))
+        cameras.append(entry)
     positions = capture.light_positions.double()
     light_dirs = directions_from(positions, center).double()
     directions, nearest = place_directions(light_dirs, up, lights)
@@ -213,11 +273,18 @@ def _four(K: Tensor) -> str:
     return "(" + ", ".join(f"{float(v):.2f}" for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])) + ")"
 
 
+def _intrinsics_entry(K: Tensor) -> dict:
+    return {"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])}
+
+
 def write_lattice(folder: Path, capture: OLATDataset, observations: Sequence[int], cameras: list[dict],
-                  lights: list[dict]) -> Path:
-    """``folder/transforms_lattice.json``: the real cameras and lights of ``capture`` (full resolution), then
-    ``cameras`` and ``lights``, and the real ``observations`` as its frames (absolute paths)."""
+                  lights: list[dict], intrinsics: dict[int, Tensor] | None = None) -> Path:
+    """``folder/transforms_lattice.json``: the real cameras and lights of ``capture`` (full resolution; view ``v`` of
+    ``intrinsics`` with ``K = intrinsics[v]``), then ``cameras`` and ``lights``, and the real ``observations`` as its
+    frames (absolute paths)."""
     header = [camera_entry(capture, view) for view in range(capture.num_views)]
+    for view, K in (intrinsics or {}).items():
+        header[view].update(_intrinsics_entry(K))
     frames = []
     for index in observations:
         obs = capture.observations[index]
@@ -254,18 +321,41 @@ def check_cameras(cameras: list[dict], capture: OLATDataset, source: str) -> Non
                             f"{z:.3f}, outside the {entry['w']}x{entry['h']} image or behind the camera")
 
 
+def framed_capture_lattice(folder: Path, data: Path, split: str, observations: Sequence[int],
+                           downscale: float = 1.0) -> tuple[LatticeSource, OLATDataset]:
+    """The lattice of capture ``data`` [``split``] written into ``folder`` with every camera that no image of
+    ``observations`` has framed as the priors' training cameras (:func:`framed_intrinsics` of the
+    :func:`silhouette_radius`; same pose and size), read back at ``downscale``; the cameras with an image, the lights
+    and the images as they are."""
+    capture = OLATDataset(data, split)
+    center = capture.bounds.center.double()
+    radius = silhouette_radius(capture, observations, center)
+    seen = {capture.observations[index].view for index in observations}
+    framed = {}
+    for view in sorted(set(range(capture.num_views)) - seen):
+        camera = capture.cameras[view]
+        center_cam = world_to_camera(center[None], camera.w2c.double())[0]
+        framed[view] = framed_intrinsics(center_cam, min(radius, 0.99 * float(center_cam.norm())), camera.width,
+                                         camera.height)
+    write_lattice(folder, capture, observations, [], [], intrinsics=framed)
+    logger.info("generation lattice %s: the capture's %d cameras without an image framed as the priors'",
+                folder, len(framed))
+    return LatticeSource(Path(folder), LATTICE_SPLIT), OLATDataset(folder, LATTICE_SPLIT, downscale=downscale)
+
+
 def build_lattice(folder: Path, data: Path, split: str, observations: Sequence[int], *, rig_file: str | None,
-                  views: int, lights: int, max_view_angle_deg: float = 0.0, downscale: float = 1.0
-                  ) -> tuple[LatticeSource, OLATDataset]:
+                  views: int, lights: int, max_view_angle_deg: float = 0.0, downscale: float = 1.0,
+                  framing: str = "real") -> tuple[LatticeSource, OLATDataset]:
     """Write the generation lattice of capture ``data`` [``split``] into ``folder`` (from ``rig_file``, or
-    ``views`` cameras and ``lights`` lights sampled: :func:`sampled_rig`) and read it back at ``downscale``."""
+    ``views`` cameras and ``lights`` lights sampled: :func:`sampled_rig`, the cameras framed by ``framing``) and read
+    it back at ``downscale``."""
     capture = OLATDataset(data, split)
     if rig_file is not None:
         path = Path(rig_file)
         cameras, new_lights = rig_from_file(path, capture)
         source = f"rig {path}"
     else:
-        cameras, new_lights = sampled_rig(capture, views, lights, max_view_angle_deg)
+        cameras, new_lights = sampled_rig(capture, views, lights, max_view_angle_deg, framing, observations)
         source = f"cameras and lights sampled around {capture.json_path}"
     check_cameras(cameras, capture, source)
     json_path = write_lattice(folder, capture, observations, cameras, new_lights)

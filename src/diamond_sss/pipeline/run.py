@@ -54,7 +54,7 @@ from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.pipeline.agreement import agreement_factors, render_errors
 from diamond_sss.pipeline.capture import GeneratedImage, check_on_lattice, write_capture
 from diamond_sss.pipeline.config import AUGMENTS, REPAIR_ROUNDS, PipelineConfig
-from diamond_sss.pipeline.rig import LatticeSource, build_lattice
+from diamond_sss.pipeline.rig import RIG_FRAMINGS, LatticeSource, build_lattice, framed_capture_lattice
 from diamond_sss.runs.folder import load_scene, render_lattice_image
 from diamond_sss.training.config import PIPELINE_KEYS, TrainConfig
 from diamond_sss.training.overrides import make_config, rescheduled, with_values
@@ -322,8 +322,9 @@ class PipelineContext:
 
 def checked_config(config: PipelineConfig | None) -> PipelineConfig:
     """``config`` (default: the defaults) once its values are checked, ``rounds`` given its default for the stages
-    (:data:`~diamond_sss.pipeline.config.REPAIR_ROUNDS` with ``repair``, else 1) and a ``device`` of ``auto`` resolved
-    (CUDA when available, else CPU); a bad value is a ``ValueError`` naming the key."""
+    (:data:`~diamond_sss.pipeline.config.REPAIR_ROUNDS` with ``repair``, else 1), ``rig_framing`` of ``auto`` resolved
+    (``prior`` with ``repair``, else ``real``) and a ``device`` of ``auto`` resolved (CUDA when available, else CPU);
+    a bad value is a ``ValueError`` naming the key."""
     cfg = config or PipelineConfig()
     unknown = set(cfg.augment) - set(AUGMENTS)
     if unknown:
@@ -348,6 +349,11 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
     if not (math.isfinite(cfg.rig_view_angle) and 0.0 <= cfg.rig_view_angle <= 180.0):
         raise ValueError(f"pipeline config 'rig_view_angle' (--rig-view-angle) must be in [0, 180] degrees, got "
                          f"{cfg.rig_view_angle}")
+    if cfg.rig_framing == "auto":
+        cfg = replace(cfg, rig_framing="prior" if "repair" in cfg.augment else "real")
+    if cfg.rig_framing not in RIG_FRAMINGS:
+        raise ValueError(f"pipeline config 'rig_framing' (--rig-framing) must be auto or one of "
+                         f"{', '.join(RIG_FRAMINGS)}, got {cfg.rig_framing!r}")
     for key, least in (("rig_views", 0), ("rig_lights", 0), ("nvs_views", 0), ("relight_lights", 0), ("nvs_steps", 1), ("relight_steps", 1),
                        ("relight_samples", 1)):
         if getattr(cfg, key) < least:
@@ -421,8 +427,7 @@ def prepare_run(data: Path, out: Path, *, split: str, regime: str, preset: str, 
     if cfg.prelim_run and cfg.augment:
         prelim_dir = check_prelim_run(Path(cfg.prelim_run), real, selection.observations)
         inputs["prelim_model_hash"] = sha256_file(prelim_dir / "model.safetensors")
-    lattice_source, lattice = generation_lattice(data, split, out, real, selection, cfg)
-    inputs["lattice"] = "capture" if lattice is real else "rig" if cfg.rig else "sampled"
+    lattice_source, lattice, inputs["lattice"] = generation_lattice(data, split, out, real, selection, cfg)
     if cfg.rig is not None:
         inputs["rig_sha256"] = sha256_file(cfg.rig)
     center = real.bounds.center
@@ -443,20 +448,26 @@ def lattice_has_targets(real: OLATDataset, selection: RegimeSelection, augment: 
 
 
 def generation_lattice(data: Path, split: str, out: Path, real: OLATDataset, selection: RegimeSelection,
-                       cfg: PipelineConfig) -> tuple[LatticeSource, OLATDataset]:
+                       cfg: PipelineConfig) -> tuple[LatticeSource, OLATDataset, str]:
     """The lattice the diffusion stages generate on: ``cfg.rig``'s when given; else the capture's own when each
-    stage has something to generate on it (:func:`lattice_has_targets`; or nothing is generated); else cameras and
-    lights placed around the real ones (``rig_views`` / ``rig_lights``), written to ``<out>/rig``."""
+    stage has something to generate on it (:func:`lattice_has_targets`; or nothing is generated), with its cameras
+    that have no image framed as the priors' under ``rig_framing=prior``; else cameras and lights placed around the
+    real ones (``rig_views`` / ``rig_lights``, framed by ``rig_framing``). Any but the capture's as it is is written
+    to ``<out>/rig``. The third value names which: ``capture``, ``capture, framed``, ``rig`` or ``sampled``."""
     if cfg.rig is None and (not cfg.augment or lattice_has_targets(real, selection, cfg.augment)):
-        return LatticeSource(Path(data), split), real
+        if cfg.augment and cfg.rig_framing == "prior":
+            return (*framed_capture_lattice(Path(out) / "rig", Path(data), split, selection.observations,
+                                            downscale=real.downscale), "capture, framed")
+        return LatticeSource(Path(data), split), real, "capture"
     if cfg.rig is None:
         logger.info("%s: no camera or light of the capture left to generate (%d images of %d views x %d lights): "
                     "placing %d cameras and %d lights around the real ones", real.json_path,
                     len(selection.observations), real.num_views, real.num_lights, cfg.rig_views, cfg.rig_lights)
     source, lattice = build_lattice(Path(out) / "rig", Path(data), split, selection.observations, rig_file=cfg.rig,
                                     views=cfg.rig_views, lights=cfg.rig_lights,
-                                    max_view_angle_deg=cfg.rig_view_angle, downscale=real.downscale)
-    return source, lattice
+                                    max_view_angle_deg=cfg.rig_view_angle, downscale=real.downscale,
+                                    framing=cfg.rig_framing)
+    return source, lattice, "rig" if cfg.rig else "sampled"
 
 
 class SilhouetteFilter:

@@ -26,6 +26,13 @@ PRIOR_CAMERA_RADIUS = 4.0
 """Distance of the prior's training cameras from the object's centre (``diamond-sss synth --camera-radius``'s
 default), scene units."""
 
+PRIOR_FOV_X_DEG = 32.0
+"""Horizontal field of view of the priors' training cameras (``diamond-sss synth --fov-x-deg``'s default), degrees."""
+
+PRIOR_FRAME_FILL = math.tan(math.asin(1.0 / PRIOR_CAMERA_RADIUS)) / math.tan(math.radians(PRIOR_FOV_X_DEG) / 2.0)
+"""How much of the image's half-width the object's bounding sphere (radius 1) spans in the priors' training images:
+``tan(asin(1 / 4)) / tan(16 deg) = 0.90``. Every shipped prior (novel views, relighting, repair) saw objects framed so."""
+
 
 @dataclass(frozen=True)
 class CanonicalFrame:
