@@ -48,11 +48,12 @@ class PipelineConfig:
                                    "generate on and no rig is given")
     rig_view_angle: float = described(0.0, "placed cameras lie within this angle (degrees) of the nearest real "
                                            "camera (0: anywhere in the real cameras' band)")
-    rig_framing: str = described("auto", "how the cameras the diffusion stages generate at frame the object: "
-                                         "prior (zoomed and centred so that it fills the image as in the priors' "
-                                         "training images; the cameras with a real image keep theirs), real (as "
-                                         "the capture's cameras do), or auto: prior with --augment repair, real "
-                                         "with the paper's stages (measured on a rig framed unlike the priors')")
+    rig_framing: str = described("auto", "how the placed cameras, and a lattice capture's cameras without an "
+                                         "image, frame the object: prior (zoomed and centred so that it fills the "
+                                         "image as in the priors' training images), real (as the capture's cameras "
+                                         "do; a --rig file's always keep theirs), or auto: prior with --augment "
+                                         "repair, real with the paper's stages (measured on a rig framed unlike "
+                                         "the priors')")
     nvs_views: int = described(12, "at most this many missing views generated per real light (0: all)")
     relight_lights: int = described(8, "at most this many missing lights generated per view (0: all)")
     nvs_model: str | None = described(None, "folder of a novel-view model (default: the shipped one)")
