@@ -365,7 +365,8 @@ def build_lattice(folder: Path, data: Path, split: str, observations: Sequence[i
         raise DataError(f"{json_path}: {lattice.num_views} views x {lattice.num_lights} lights, expected the "
                         f"capture's {capture.num_views} x {capture.num_lights} plus {len(cameras)} new cameras and "
                         f"{len(new_lights)} new lights ({source}: some coincide)")
-    logger.info("generation lattice %s: %d new cameras, %d new lights (%s)", json_path, len(cameras),
+    framed = ", framed as the priors'" if framing == "prior" and rig_file is None and cameras else ""
+    logger.info("generation lattice %s: %d new cameras%s, %d new lights (%s)", json_path, len(cameras), framed,
                 len(new_lights), source)
     return LatticeSource(Path(folder), LATTICE_SPLIT, tuple(range(capture.num_views, lattice.num_views)),
                          tuple(range(capture.num_lights, lattice.num_lights))), lattice
