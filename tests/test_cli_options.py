@@ -48,6 +48,11 @@ def test_run_reaches_every_pipeline_field_with_the_configs_defaults(tmp_path, ca
     said = capsys.readouterr().out
     assert captured_pipeline["config"].augment == ("repair",)  # its model ships with the package
     assert "--augment auto -> repair: render repair (beyond the paper): on four held-out objects" in said
+    assert "--rig-framing auto -> prior: the cameras repair generates at are zoomed on the object" in said
+    main([*base, "--augment", "nvs,relight"])
+    assert "--rig-framing auto -> real: the paper's stages keep the capture's framing" in capsys.readouterr().out
+    main([*base, "--augment", "repair", "--rig-framing", "real"])
+    assert "--rig-framing" not in capsys.readouterr().out
     assert "--augment auto" not in (main([*base, "--augment", "none"]) or capsys.readouterr().out)
 
 

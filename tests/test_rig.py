@@ -11,15 +11,14 @@ import torch
 from tiny_models import TINY_NVS, TINY_RELIGHT
 
 from diamond_sss.data import OLATDataset
-from diamond_sss.data.analytic import make_capture
+from diamond_sss.data.analytic import SPHERE_RADIUS, make_capture
 from diamond_sss.data.conventions import look_at_opengl_c2w, mean_up_vector, project_points
 from diamond_sss.data.dataset import directions_from
+from diamond_sss.diffusion.nvs.canonical import PRIOR_FRAME_FILL
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.diffusion.relight.config import RelightModelConfig
 from diamond_sss.diffusion.relight.model import RelightDiffusion
 from diamond_sss.errors import DataError
-from diamond_sss.data.analytic import SPHERE_RADIUS
-from diamond_sss.diffusion.nvs.canonical import PRIOR_FRAME_FILL
 from diamond_sss.pipeline.rig import (
     ELEVATION_MARGIN_DEG,
     build_lattice,

@@ -53,7 +53,13 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         quiet: no progress bars.
         pipeline: the pipeline's settings (PipelineConfig).
     """
-    from diamond_sss.pipeline.run import AUTO_AUGMENT_WHY, parse_augment, run_pipeline
+    from diamond_sss.pipeline.run import (
+        AUTO_AUGMENT_WHY,
+        AUTO_FRAMING_WHY,
+        checked_config,
+        parse_augment,
+        run_pipeline,
+    )
     from diamond_sss.training.config import AUTO_PRESET
     from diamond_sss.training.overrides import parse_sets
 
@@ -75,6 +81,9 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
                 + (" (not trained: --prelim-run gives it)" if cfg.prelim_run else ""))
     if augment.strip() == "auto":
         said = "\n".join(filter(None, [said, f"--augment auto -> {','.join(cfg.augment) or 'none'}: {AUTO_AUGMENT_WHY}"]))
+    if cfg.rig_framing == "auto" and cfg.augment:
+        framing = checked_config(cfg).rig_framing
+        said = "\n".join(filter(None, [said, f"--rig-framing auto -> {framing}: {AUTO_FRAMING_WHY[framing]}"]))
     if said:
         Console(soft_wrap=True).print(said)
     result = run_pipeline(data, out, split=split, regime=regime, preset=preset, overrides=overrides,

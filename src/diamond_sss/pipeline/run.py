@@ -212,6 +212,14 @@ AUTO_AUGMENT_WHY = ("render repair (beyond the paper): on four held-out objects 
                     "stages")
 """Why ``--augment auto`` picks what it picks (``diamond-sss run`` prints it)."""
 
+AUTO_FRAMING_WHY = {
+    "prior": "the cameras repair generates at are zoomed on the object as the priors' training cameras framed it; on "
+             "a rig framing it at half that scale, +1.1 to +1.5 dB (benchmarks/RESULTS.md, session 48)",
+    "real": "the paper's stages keep the capture's framing: framed, their unresampled reference view lost 0.2 / 0.5 dB "
+            "(benchmarks/RESULTS.md, session 48)",
+}
+"""Why ``--rig-framing auto`` resolves as it does (:func:`checked_config`; ``diamond-sss run`` prints it)."""
+
 
 def parse_augment(text: str) -> tuple[str, ...]:
     """``auto`` (:func:`shipped_augments`), ``none`` or a comma list of ``nvs`` / ``relight``, or ``repair``."""
