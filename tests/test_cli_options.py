@@ -53,6 +53,8 @@ def test_run_reaches_every_pipeline_field_with_the_configs_defaults(tmp_path, ca
     assert "--rig-framing auto -> real: the paper's stages keep the capture's framing" in capsys.readouterr().out
     main([*base, "--augment", "repair", "--rig-framing", "real"])
     assert "--rig-framing" not in capsys.readouterr().out
+    main([*base, "--augment", "repair", "--rig", str(tmp_path / "rig.json")])
+    assert "--rig-framing auto -> real: a --rig file's cameras keep the intrinsics" in capsys.readouterr().out
     assert "--augment auto" not in (main([*base, "--augment", "none"]) or capsys.readouterr().out)
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 from tiny_models import TINY_NVS, TINY_RELIGHT
@@ -14,6 +15,7 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import SPHERE_RADIUS, make_capture
 from diamond_sss.data.conventions import look_at_opengl_c2w, mean_up_vector, project_points
 from diamond_sss.data.dataset import directions_from
+from diamond_sss.data.images import read_image_array, write_png
 from diamond_sss.diffusion.nvs.canonical import PRIOR_FRAME_FILL
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.diffusion.relight.config import RelightModelConfig
@@ -200,6 +202,34 @@ def test_the_silhouettes_give_the_spheres_radius(tmp_path):
     assert SPHERE_RADIUS - 0.04 < radius < SPHERE_RADIUS + 0.01  # mask pixel centres: within half a pixel
     with pytest.raises(DataError, match=r"transforms_train\.json: every mask of the 0 images is empty"):
         silhouette_radius(capture, [], torch.zeros(3))
+
+
+def _set_alpha(path, value: int) -> None:
+    rgba = (read_image_array(path) * 255 + 0.5).astype(np.uint8)
+    rgba[..., 3] = value
+    write_png(path, rgba)
+
+
+def test_a_cut_off_silhouette_is_named_and_empty_masks_stop_the_framing(tmp_path, caplog):
+    make_capture(tmp_path, views=3, lights=1, size=32)
+    _set_alpha(OLATDataset(tmp_path).observations[1].image_path, 255)  # the object fills view 1: cut off
+    with caplog.at_level("WARNING", logger="diamond_sss.pipeline.rig"):
+        silhouette_radius(OLATDataset(tmp_path), range(3), torch.zeros(3))
+    assert "view 1's mask touches the image border" in caplog.text and "view 0's" not in caplog.text
+    for obs in OLATDataset(tmp_path).observations:
+        _set_alpha(obs.image_path, 0)
+    with pytest.raises(DataError, match=r"transforms_train\.json: every mask of the 3 images is empty: no object "
+                                        r"to frame .* use rig_framing=real"):
+        silhouette_radius(OLATDataset(tmp_path), range(3), torch.zeros(3))
+
+
+def test_auto_framing_follows_the_stages_and_a_rig_file_keeps_its_intrinsics(tmp_path):
+    assert checked_config(PipelineConfig(augment=("repair",))).rig_framing == "prior"
+    assert checked_config(PipelineConfig(augment=("nvs", "relight"))).rig_framing == "real"
+    assert checked_config(PipelineConfig(augment=("repair",), rig=str(tmp_path / "rig.json"))).rig_framing == "real"
+    with pytest.raises(ValueError, match=r"rig_framing' \(--rig-framing\) prior: the cameras of --rig .*rig\.json "
+                                         r"keep the intrinsics the file gives"):
+        checked_config(PipelineConfig(augment=("repair",), rig_framing="prior", rig=str(tmp_path / "rig.json")))
 
 
 def test_framed_intrinsics_make_the_sphere_fill_the_priors_share_of_the_image():

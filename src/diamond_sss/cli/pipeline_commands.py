@@ -55,8 +55,7 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
     """
     from diamond_sss.pipeline.run import (
         AUTO_AUGMENT_WHY,
-        AUTO_FRAMING_WHY,
-        checked_config,
+        auto_framing,
         parse_augment,
         run_pipeline,
     )
@@ -82,8 +81,7 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
     if augment.strip() == "auto":
         said = "\n".join(filter(None, [said, f"--augment auto -> {','.join(cfg.augment) or 'none'}: {AUTO_AUGMENT_WHY}"]))
     if cfg.rig_framing == "auto" and cfg.augment:
-        framing = checked_config(cfg).rig_framing
-        said = "\n".join(filter(None, [said, f"--rig-framing auto -> {framing}: {AUTO_FRAMING_WHY[framing]}"]))
+        said = "\n".join(filter(None, [said, "--rig-framing auto -> {}: {}".format(*auto_framing(cfg))]))
     if said:
         Console(soft_wrap=True).print(said)
     result = run_pipeline(data, out, split=split, regime=regime, preset=preset, overrides=overrides,

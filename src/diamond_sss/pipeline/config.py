@@ -51,9 +51,9 @@ class PipelineConfig:
     rig_framing: str = described("auto", "how the placed cameras, and a lattice capture's cameras without an "
                                          "image, frame the object: prior (zoomed and centred so that it fills the "
                                          "image as in the priors' training images), real (as the capture's cameras "
-                                         "do; a --rig file's always keep theirs), or auto: prior with --augment "
-                                         "repair, real with the paper's stages (measured on a rig framed unlike "
-                                         "the priors')")
+                                         "do; a --rig file's keep theirs), or auto: prior with --augment repair, "
+                                         "real with the paper's stages or a --rig file (measured on a rig framed "
+                                         "unlike the priors')")
     nvs_views: int = described(12, "at most this many missing views generated per real light (0: all)")
     relight_lights: int = described(8, "at most this many missing lights generated per view (0: all)")
     nvs_model: str | None = described(None, "folder of a novel-view model (default: the shipped one)")

@@ -145,16 +145,24 @@ def light_entry(position: Tensor, intensity: Tensor) -> dict:
 
 def silhouette_radius(capture: OLATDataset, observations: Sequence[int], center: Tensor) -> float:
     """Radius (scene units) of the sphere about ``center`` that the silhouettes of ``observations`` span: the largest
-    ``d sin(alpha)`` over the images, ``d`` the camera's distance from ``center`` and ``alpha`` the widest angle
-    between the ray to ``center`` and a ray through a pixel of the image's mask (> 0.5). A :class:`DataError` names
-    the capture when every mask is empty."""
+    ``d sin(alpha)`` over their views, ``d`` the camera's distance from ``center`` and ``alpha`` the widest angle
+    between the ray to ``center`` and a ray through a pixel of the view's masks (> 0.5, united over its images). A
+    :class:`DataError` names the capture when every mask is empty; a mask that touches its image's border (the
+    object cut off, so its radius is only a lower bound there) is named in a warning."""
     center = center.double()
-    radius = 0.0
+    masks: dict[int, Tensor] = {}
     for index in observations:
-        sample, camera = capture.load(index), capture.cameras[capture.observations[index].view]
-        inside = sample.mask[..., 0] > 0.5
+        view = capture.observations[index].view
+        inside = capture.load(index).mask[..., 0] > 0.5
+        masks[view] = masks[view] | inside if view in masks else inside
+    radius = 0.0
+    for view, inside in masks.items():
         if not bool(inside.any()):
             continue
+        if bool(inside[0].any() or inside[-1].any() or inside[:, 0].any() or inside[:, -1].any()):
+            logger.warning("%s: view %d's mask touches the image border: the object is cut off there, so the "
+                           "framed cameras (rig_framing=prior) may crop it", capture.json_path, view)
+        camera = capture.cameras[view]
         eye = camera_centers(camera.w2c.double())
         axis = (center - eye) / (center - eye).norm()
         rays = pixel_ray_directions(camera.w2c.double(), camera.K.double(), camera.height, camera.width)[inside]
@@ -162,7 +170,7 @@ def silhouette_radius(capture: OLATDataset, observations: Sequence[int], center:
         radius = max(radius, float((center - eye).norm()) * math.sin(min(alpha, math.pi / 2)))
     if radius <= 0.0:
         raise DataError(f"{capture.json_path}: every mask of the {len(observations)} images is empty: no object to "
-                        "frame the placed cameras on (rig_framing=prior); give masks or use rig_framing=real")
+                        "frame the generated cameras on (rig_framing=prior); give masks or use rig_framing=real")
     return radius
 
 

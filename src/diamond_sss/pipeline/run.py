@@ -212,13 +212,16 @@ AUTO_AUGMENT_WHY = ("render repair (beyond the paper): on four held-out objects 
                     "stages")
 """Why ``--augment auto`` picks what it picks (``diamond-sss run`` prints it)."""
 
-AUTO_FRAMING_WHY = {
-    "prior": "the cameras repair generates at are zoomed on the object as the priors' training cameras framed it; on "
-             "a rig framing it at half that scale, +1.1 to +1.5 dB (benchmarks/RESULTS.md, session 48)",
-    "real": "the paper's stages keep the capture's framing: framed, their unresampled reference view lost 0.2 / 0.5 dB "
-            "(benchmarks/RESULTS.md, session 48)",
-}
-"""Why ``--rig-framing auto`` resolves as it does (:func:`checked_config`; ``diamond-sss run`` prints it)."""
+def auto_framing(cfg: PipelineConfig) -> tuple[str, str]:
+    """What ``--rig-framing auto`` resolves to for ``cfg`` and why (``diamond-sss run`` prints it)."""
+    if cfg.rig is not None:
+        return "real", "a --rig file's cameras keep the intrinsics it gives"
+    if "repair" in cfg.augment:
+        return "prior", ("the cameras repair generates at are zoomed on the object as the priors' training cameras "
+                         "framed it; on a rig framing it at half that scale, +1.1 to +1.5 dB (benchmarks/RESULTS.md, "
+                         "session 48)")
+    return "real", ("the paper's stages keep the capture's framing: framed, their unresampled reference view lost "
+                    "0.2 / 0.5 dB (benchmarks/RESULTS.md, session 48)")
 
 
 def parse_augment(text: str) -> tuple[str, ...]:
@@ -331,7 +334,7 @@ class PipelineContext:
 def checked_config(config: PipelineConfig | None) -> PipelineConfig:
     """``config`` (default: the defaults) once its values are checked, ``rounds`` given its default for the stages
     (:data:`~diamond_sss.pipeline.config.REPAIR_ROUNDS` with ``repair``, else 1), ``rig_framing`` of ``auto`` resolved
-    (``prior`` with ``repair``, else ``real``) and a ``device`` of ``auto`` resolved (CUDA when available, else CPU);
+    (:func:`auto_framing`) and a ``device`` of ``auto`` resolved (CUDA when available, else CPU);
     a bad value is a ``ValueError`` naming the key."""
     cfg = config or PipelineConfig()
     unknown = set(cfg.augment) - set(AUGMENTS)
@@ -358,10 +361,13 @@ def checked_config(config: PipelineConfig | None) -> PipelineConfig:
         raise ValueError(f"pipeline config 'rig_view_angle' (--rig-view-angle) must be in [0, 180] degrees, got "
                          f"{cfg.rig_view_angle}")
     if cfg.rig_framing == "auto":
-        cfg = replace(cfg, rig_framing="prior" if "repair" in cfg.augment else "real")
+        cfg = replace(cfg, rig_framing=auto_framing(cfg)[0])
     if cfg.rig_framing not in RIG_FRAMINGS:
         raise ValueError(f"pipeline config 'rig_framing' (--rig-framing) must be auto or one of "
                          f"{', '.join(RIG_FRAMINGS)}, got {cfg.rig_framing!r}")
+    if cfg.rig_framing == "prior" and cfg.rig is not None:
+        raise ValueError(f"pipeline config 'rig_framing' (--rig-framing) prior: the cameras of --rig {cfg.rig} keep "
+                         "the intrinsics the file gives; drop --rig-framing or the rig file")
     for key, least in (("rig_views", 0), ("rig_lights", 0), ("nvs_views", 0), ("relight_lights", 0), ("nvs_steps", 1), ("relight_steps", 1),
                        ("relight_samples", 1)):
         if getattr(cfg, key) < least:
