@@ -14,15 +14,17 @@ from diamond_sss.data.analytic import FOV_X, SPHERE_RADIUS, make_capture
 from diamond_sss.data.conventions import (
     camera_centers,
     intrinsics_from_fov,
+    intrinsics_matrix,
     linear_to_srgb,
     look_at_opengl_c2w,
     opencv_w2c_to_opengl_c2w,
     opengl_c2w_to_opencv_w2c,
+    pixel_grid,
     project_points,
     srgb_to_linear,
     unproject_pixels,
 )
-from diamond_sss.data.images import load_rgba, to_srgb8, write_png
+from diamond_sss.data.images import load_rgba, reframe, to_srgb8, write_png
 from diamond_sss.utils.logs import reset_warnings
 
 
@@ -357,3 +359,39 @@ def test_sample_bilinear_hits_pixel_centres():
     image = torch.arange(12, dtype=torch.float32).reshape(1, 3, 4)
     uv = torch.tensor([[[0.5, 0.5], [3.5, 2.5], [1.0, 0.5], [2.5, 1.0], [-5.0, 0.5]]])
     assert torch.allclose(sample_bilinear(image, uv), torch.tensor([[0.0, 11.0, 0.5, 4.0, 0.0]]), atol=1e-5)
+
+
+def test_reframe_reads_each_pixel_through_the_other_intrinsics():
+    """A ramp ``I(u, v) = u + 10 v`` (bilinear reads it exactly): the same intrinsics give the image back; a focal
+    length doubled about another principal point gives ``I(K_from K_to^-1 p')``; pixels that read outside are 0."""
+    height, width = 12, 16
+    grid = pixel_grid(height, width)
+    ramp = (grid[..., 0] + 10.0 * grid[..., 1])[None, None]
+    K_from = intrinsics_matrix(20.0, 20.0, 8.0, 6.0)[None]
+    assert torch.allclose(reframe(ramp, K_from, K_from), ramp, atol=1e-4)
+    K_to = intrinsics_matrix(40.0, 40.0, 7.0, 5.0)[None]
+    out = reframe(ramp, K_from, K_to)[0, 0]
+    u = (grid[..., 0] - 7.0) / 2.0 + 8.0  # p = K_from K_to^-1 p'
+    v = (grid[..., 1] - 5.0) / 2.0 + 6.0
+    inside = (u >= 0.5) & (u <= width - 0.5) & (v >= 0.5) & (v <= height - 0.5)
+    assert inside.float().mean() > 0.5
+    assert torch.allclose(out[inside], (u + 10.0 * v)[inside], atol=1e-3)
+    zoomed_out = reframe(ramp, K_from, intrinsics_matrix(5.0, 5.0, 8.0, 6.0)[None])[0, 0]
+    assert zoomed_out[0, 0] == 0.0 and zoomed_out[6, 8] > 0.0  # the corner reads far outside, the centre inside
+    depth = torch.zeros(1, 1, height, width)
+    depth[..., 4:8, 6:10] = 3.0
+    assert set(reframe(depth, K_from, K_to, mode="nearest").unique().tolist()) <= {0.0, 3.0}  # no blend with 0
+    with pytest.raises(ValueError, match=r"K_from / K_to \[N,3,3\]"):
+        reframe(ramp, K_from[0], K_to)
+
+
+def test_reframe_zooming_out_averages_like_an_area_resize():
+    """Half the focal length about the image centre: the centre half of the result is the image area-resized to half
+    its size (a box filter, no aliasing of a checkerboard into stripes)."""
+    size = 16
+    checker = ((torch.arange(size)[:, None] + torch.arange(size)[None, :]) % 2).float()[None, None]
+    K_from = intrinsics_matrix(20.0, 20.0, 8.0, 8.0)[None]
+    out = reframe(checker, K_from, intrinsics_matrix(10.0, 10.0, 8.0, 8.0)[None])[0, 0]
+    assert torch.allclose(out[4:12, 4:12], torch.full((8, 8), 0.5), atol=1e-6)
+    assert out[:4].abs().max() == 0.0
+    assert torch.allclose(reframe(checker, K_from, K_from), checker, atol=1e-6)  # no zoom: no averaging

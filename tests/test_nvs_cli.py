@@ -14,8 +14,11 @@ from tiny_models import TINY_NVS
 from diamond_sss.cli.main import main
 from diamond_sss.cli.nvs_commands import nvs
 from diamond_sss.data.analytic import make_capture
+from diamond_sss.data.conventions import scale_intrinsics
+from diamond_sss.data.images import reframe
 from diamond_sss.diffusion.common.manifest import read_image_manifest
 from diamond_sss.diffusion.nvs import pipeline
+from diamond_sss.diffusion.nvs.data import load_rgba_views
 from diamond_sss.diffusion.nvs.model import NVSConfig, NVSModel
 from diamond_sss.pipeline.capture import check_on_lattice
 
@@ -189,3 +192,33 @@ def test_a_seed_gives_the_same_views_on_cuda_as_on_the_cpu(setup, tmp_path):
         images[name] = iio.imread(tmp_path / name / "images" / "view_001.png").astype(int)
     assert int(abs(images["cpu"] - images["cuda"]).max()) <= 8  # rounding (TF32 convolutions), not other noise
     assert int(abs(images["cpu"] - images["other_seed"]).max()) > 8
+
+
+def test_a_reference_given_other_intrinsics_is_resampled_to_them(setup, tmp_path, monkeypatch):
+    """``reference_K``: the model gets the reference image reframed (same pose) and those intrinsics; the captured
+    ones give the images of no ``reference_K``, other ones other images (another cache entry)."""
+    data, _, _ = setup
+    dataset = pipeline.OLATDataset(data)
+    captured = dataset.intrinsics[0].double()
+    image = ("images", "view_001.png")
+    run(setup, tmp_path / "a")
+    run(setup, tmp_path / "b", reference_K=captured, cache_dir=tmp_path / "cache")
+    assert tmp_path.joinpath("a", *image).read_bytes() == tmp_path.joinpath("b", *image).read_bytes()
+    batches = []
+    call = pipeline.NovelViewPipeline.__call__
+    monkeypatch.setattr(pipeline.NovelViewPipeline, "__call__",
+                        lambda self, batch, *args, **kwargs: batches.append(batch) or call(self, batch, *args, **kwargs))
+    zoomed = captured.clone()
+    zoomed[0, 0] *= 2.0
+    zoomed[1, 1] *= 2.0
+    run(setup, tmp_path / "c", reference_K=zoomed, cache_dir=tmp_path / "cache")
+    (batch,) = batches
+    size = TINY["image_size"]
+    seen_K = scale_intrinsics(zoomed, size / dataset.width)[None].float()
+    reference, reference_K = load_rgba_views(dataset, [0], 1, size)
+    assert torch.allclose(batch.reference_K, seen_K)
+    assert torch.allclose(batch.reference, reframe(reference, reference_K, seen_K), atol=1e-6)
+    assert not torch.allclose(batch.reference, reference, atol=1e-2)
+    assert tmp_path.joinpath("a", *image).read_bytes() != tmp_path.joinpath("c", *image).read_bytes()
+    with pytest.raises(ValueError, match=r"reference_K must be a \[3,3\] matrix"):
+        run(setup, tmp_path / "d", reference_K=zoomed[:2])

@@ -13,7 +13,7 @@ from tiny_models import TINY_NVS, TINY_RELIGHT
 
 from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import SPHERE_RADIUS, make_capture
-from diamond_sss.data.conventions import look_at_opengl_c2w, mean_up_vector, project_points
+from diamond_sss.data.conventions import look_at_opengl_c2w, mean_up_vector, project_points, world_to_camera
 from diamond_sss.data.dataset import directions_from
 from diamond_sss.data.images import read_image_array, write_png
 from diamond_sss.diffusion.nvs.canonical import PRIOR_FRAME_FILL
@@ -288,3 +288,30 @@ def test_the_capture_lattice_framed_zooms_only_the_cameras_without_an_image(tmp_
         assert torch.allclose(uv[0], torch.tensor([12.0, 12.0], dtype=torch.float64), atol=1e-3)
     for index, obs in zip(chosen, lattice.observations, strict=True):
         assert obs.image_path == capture.observations[index].image_path
+
+
+@pytest.mark.parametrize("framing", ["prior", "real"])
+def test_the_novel_view_prior_sees_its_references_framed_as_the_cameras_it_generates_at(sparse, tmp_path, monkeypatch,
+                                                                                        framing):
+    import diamond_sss.diffusion.nvs.pipeline as nvs_pipeline
+
+    data, nvs, _, cache = sparse
+    calls = []
+    generate = nvs_pipeline.generate_novel_views
+    monkeypatch.setattr(nvs_pipeline, "generate_novel_views",
+                        lambda *args, **kwargs: calls.append((args[2], kwargs["reference_K"])) or generate(*args, **kwargs))
+    cfg = PipelineConfig(augment=("nvs",), rig_views=2, rig_lights=1, nvs_views=0, nvs_model=str(nvs), nvs_steps=1,
+                         min_silhouette_iou=0.0, min_mask_fraction=0.0, cache_dir=str(cache), rig_framing=framing)
+    run_pipeline(data, tmp_path, regime="all", overrides=TRAIN, config=cfg, show_progress=False)
+    assert calls and json.loads((tmp_path / "pipeline.json").read_text())["stages"]["nvs"]["references_framed"] == (
+        len({view for view, _ in calls}) if framing == "prior" else 0)
+    capture = OLATDataset(data)
+    center = capture.bounds.center.double()
+    radius = silhouette_radius(capture, range(9), center)
+    for view, reference_K in calls:
+        if framing == "real":
+            assert reference_K is None
+            continue
+        assert torch.allclose(reference_K, framed_intrinsics(
+            world_to_camera(center[None], capture.viewmats[view].double())[0], radius, 16, 16), atol=1e-9)
+        assert float(reference_K[0, 0]) > 1.3 * float(capture.intrinsics[view, 0, 0])

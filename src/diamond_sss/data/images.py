@@ -5,6 +5,7 @@ Everything returned is linear radiance (see :mod:`diamond_sss.data.conventions`)
 
 from __future__ import annotations
 
+import math
 import os
 import struct
 from dataclasses import dataclass
@@ -17,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from diamond_sss.data.conventions import linear_to_srgb, srgb_to_linear
+from diamond_sss.data.conventions import linear_to_srgb, pixel_grid, scale_intrinsics, srgb_to_linear
 from diamond_sss.errors import DataError
 from diamond_sss.utils.io import atomic_write
 
@@ -146,6 +147,29 @@ def resize_area(image: Tensor, height: int, width: int) -> Tensor:
         return image
     chw = image.permute(2, 0, 1).unsqueeze(0)
     return F.interpolate(chw, size=(height, width), mode="area")[0].permute(1, 2, 0).contiguous()
+
+
+def reframe(images: Tensor, K_from: Tensor, K_to: Tensor, mode: str = "bilinear") -> Tensor:
+    """``images [N,C,H,W]`` taken with intrinsics ``K_from [N,3,3]`` as the same cameras (pose and size) with
+    ``K_to [N,3,3]`` take them: pixel ``p'`` of the result reads ``p = K_from K_to^-1 p'`` (pixel centres at
+    half-integers, :func:`~diamond_sss.data.conventions.pixel_grid`), 0 outside the image. ``mode`` is
+    ``grid_sample``'s: ``bilinear`` for images, ``nearest`` for depth maps (no blend of a surface with background).
+    Zooming out by ``s = f_from / f_to > 1`` in ``bilinear`` reads ``ceil(s)^2`` points per pixel and averages
+    them (a box filter, as :func:`resize_area`), so a small copy does not alias."""
+    if images.ndim != 4 or K_from.shape != (images.shape[0], 3, 3) or K_to.shape != K_from.shape:
+        raise ValueError(f"need images [N,C,H,W] and K_from / K_to [N,3,3], got {tuple(images.shape)}, "
+                         f"{tuple(K_from.shape)} and {tuple(K_to.shape)}")
+    height, width = images.shape[-2:]
+    zoom_out = float((K_from[:, :2, :2].diagonal(dim1=-2, dim2=-1) / K_to[:, :2, :2].diagonal(dim1=-2, dim2=-1)).max())
+    factor = 1 if mode == "nearest" else max(1, math.ceil(zoom_out - 1e-6))
+    mapping = K_from.double() @ torch.linalg.inv(scale_intrinsics(K_to.double(), factor))  # p' (supersampled) -> p
+    grid = pixel_grid(factor * height, factor * width, device=images.device).double().reshape(-1, 2)
+    source = torch.einsum("nij,pj->npi", mapping, torch.cat([grid, torch.ones_like(grid[:, :1])], dim=-1))
+    uv = source[..., :2] / source[..., 2:]
+    normalised = torch.stack([uv[..., 0] * (2.0 / width), uv[..., 1] * (2.0 / height)], dim=-1) - 1.0
+    out = F.grid_sample(images, normalised.reshape(-1, factor * height, factor * width, 2).to(images.dtype),
+                        mode=mode, padding_mode="zeros", align_corners=False)
+    return F.avg_pool2d(out, factor) if factor > 1 else out
 
 
 def to_srgb8(linear_rgb: Tensor, alpha: Tensor | None = None) -> np.ndarray:

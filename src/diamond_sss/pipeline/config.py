@@ -50,7 +50,8 @@ class PipelineConfig:
                                            "camera (0: anywhere in the real cameras' band)")
     rig_framing: str = described("auto", "how the placed cameras, and a lattice capture's cameras without an "
                                          "image, frame the object: prior (zoomed and centred so that it fills the "
-                                         "image as in the priors' training images), real (as the capture's cameras "
+                                         "image as in the priors' training images; the novel-view reference "
+                                         "resampled to match), real (as the capture's cameras "
                                          "do; a --rig file's keep theirs), or auto: prior with --augment repair, "
                                          "real with the paper's stages or a --rig file (measured on a rig framed "
                                          "unlike the priors')")

@@ -44,7 +44,7 @@ from diamond_sss.data.conventions import (
     project_points,
     world_to_camera,
 )
-from diamond_sss.data.dataset import OLATDataset, directions_from
+from diamond_sss.data.dataset import Camera, OLATDataset, directions_from
 from diamond_sss.data.transforms import parse_rig
 from diamond_sss.diffusion.nvs.canonical import PRIOR_FRAME_FILL
 from diamond_sss.errors import DataError
@@ -187,6 +187,13 @@ def framed_intrinsics(center: Tensor, radius: float, width: int, height: int, fi
     focal = fill * 0.5 * min(width, height) / math.tan(math.asin(radius / distance))
     shift = focal * center[:2] / center[2]
     return intrinsics_matrix(focal, focal, 0.5 * width - float(shift[0]), 0.5 * height - float(shift[1])).double()
+
+
+def framed_camera_intrinsics(camera: Camera, center: Tensor, radius: float) -> Tensor:
+    """:func:`framed_intrinsics` of ``camera`` (its pose and image size) for the object's sphere of ``radius`` about
+    world ``center``, the radius capped below the camera's distance."""
+    center_cam = world_to_camera(center[None].double(), camera.w2c.double())[0]
+    return framed_intrinsics(center_cam, min(radius, 0.99 * float(center_cam.norm())), camera.width, camera.height)
 
 
 def sampled_rig(capture: OLATDataset, views: int, lights: int, max_view_angle_deg: float = 0.0,
@@ -339,12 +346,8 @@ def framed_capture_lattice(folder: Path, data: Path, split: str, observations: S
     center = capture.bounds.center.double()
     radius = silhouette_radius(capture, observations, center)
     seen = {capture.observations[index].view for index in observations}
-    framed = {}
-    for view in sorted(set(range(capture.num_views)) - seen):
-        camera = capture.cameras[view]
-        center_cam = world_to_camera(center[None], camera.w2c.double())[0]
-        framed[view] = framed_intrinsics(center_cam, min(radius, 0.99 * float(center_cam.norm())), camera.width,
-                                         camera.height)
+    framed = {view: framed_camera_intrinsics(capture.cameras[view], center, radius)
+              for view in sorted(set(range(capture.num_views)) - seen)}
     write_lattice(folder, capture, observations, [], [], intrinsics=framed)
     logger.info("generation lattice %s: the capture's %d cameras without an image framed as the priors'",
                 folder, len(framed))

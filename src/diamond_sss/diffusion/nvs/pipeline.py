@@ -28,7 +28,7 @@ from diamond_sss.data.conventions import (
     opengl_c2w_to_opencv_w2c,
     scale_intrinsics,
 )
-from diamond_sss.data.images import to_srgb8, write_png
+from diamond_sss.data.images import reframe, to_srgb8, write_png
 from diamond_sss.diffusion.common.cache import OutputCache
 from diamond_sss.diffusion.common.hashing import files_hash
 from diamond_sss.diffusion.common.manifest import GeneratedImage, image_paths, write_image_manifest
@@ -281,6 +281,7 @@ def generate_novel_views(
     downscale: float = 1.0,
     canonical: bool = False,
     model: NVSModel | None = None,
+    reference_K: Tensor | None = None,
 ) -> Path:
     """Generate the ``targets`` (lattice view indices or cameras, see :func:`parse_targets`) of ``data`` under
     ``light`` from reference ``view``; returns the manifest (:mod:`~diamond_sss.diffusion.common.manifest`).
@@ -293,6 +294,9 @@ def generate_novel_views(
     same model and inputs is served from the cache. ``canonical``: the cameras (and depth) are given to the prior in its own rig's frame
     (:mod:`~diamond_sss.diffusion.nvs.canonical`; from ``data``'s cameras), not in the capture's. ``model``: the model
     of ``model_dir`` already loaded on ``device`` (loaded here when not given; pass it when generating several times).
+    ``reference_K``: intrinsics ``[3,3]`` at the capture's size over ``downscale`` in which the prior sees the
+    reference view, its image, mask and depth resampled to them (:func:`~diamond_sss.data.images.reframe`; same pose;
+    the pipeline's ``rig_framing=prior`` frames it as the priors' training cameras); None: as captured.
     """
     dataset = OLATDataset(data, split, downscale=downscale)
     if not 0 <= view < dataset.num_views:
@@ -317,6 +321,9 @@ def generate_novel_views(
             "pass a geometry source ('maps' or a reconstruction run folder)"
         )
     observation = dataset.observations[dataset.observation_index(view, light)]
+    seen_K = dataset.intrinsics[view].double() if reference_K is None else reference_K.double().cpu()
+    if seen_K.shape != (3, 3):
+        raise ValueError(f"reference_K must be a [3,3] matrix, got {tuple(seen_K.shape)}")
     frame = canonical_frame(dataset.viewmats, dataset.bounds.center, mean_up_vector(dataset.viewmats)) \
         if canonical else None
     output_size = min(cameras.size, config.image_size)
@@ -337,6 +344,7 @@ def generate_novel_views(
             "canonical_frame": None if frame is None else [frame.rotation.tolist(), frame.center.tolist(), frame.scale],
             "seed": seed,
             "geometry": geometry.view_key(dataset, view) if config.warp_hint else None,
+            **({} if reference_K is None else {"reference_seen_K": seen_K.tolist()}),
         }
     )
     cache = OutputCache(cache_dir if cache_dir is not None else default_cache_dir("nvs"))
@@ -346,6 +354,11 @@ def generate_novel_views(
         size = config.warp_source_size if config.warp_hint else config.image_size
         reference, ref_K = load_rgba_views(dataset, [view], light, size)
         depth = reference_depth(dataset, view, light, geometry, size) if config.warp_hint else None
+        if reference_K is not None:  # the reference seen through other intrinsics (same pose)
+            framed_K = scale_intrinsics(seen_K, size / dataset.width)[None].to(ref_K)
+            reference = reframe(reference, ref_K, framed_K)
+            depth = None if depth is None else reframe(depth, ref_K, framed_K, mode="nearest")
+            ref_K = framed_K
         K = scale_intrinsics(cameras.K, size / cameras.size)
         reference_w2c, target_w2c = dataset.viewmats[view][None], cameras.w2c[None]
         if frame is not None:  # the prior's own rig (diffusion/nvs/canonical.py): metric depth scales with it
