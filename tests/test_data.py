@@ -383,6 +383,9 @@ def test_reframe_reads_each_pixel_through_the_other_intrinsics():
     assert set(reframe(depth, K_from, K_to, mode="nearest").unique().tolist()) <= {0.0, 3.0}  # no blend with 0
     with pytest.raises(ValueError, match=r"K_from / K_to \[N,3,3\]"):
         reframe(ramp, K_from[0], K_to)
+    for bad in (intrinsics_matrix(0.0, 40.0, 7.0, 5.0)[None], torch.full((1, 3, 3), float("nan"))):
+        with pytest.raises(ValueError, match="finite with positive focal lengths"):
+            reframe(ramp, K_from, bad)
 
 
 def test_reframe_zooming_out_averages_like_an_area_resize():

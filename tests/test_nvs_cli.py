@@ -220,5 +220,8 @@ def test_a_reference_given_other_intrinsics_is_resampled_to_them(setup, tmp_path
     assert torch.allclose(batch.reference, reframe(reference, reference_K, seen_K), atol=1e-6)
     assert not torch.allclose(batch.reference, reference, atol=1e-2)
     assert tmp_path.joinpath("a", *image).read_bytes() != tmp_path.joinpath("c", *image).read_bytes()
-    with pytest.raises(ValueError, match=r"reference_K must be a \[3,3\] matrix"):
-        run(setup, tmp_path / "d", reference_K=zoomed[:2])
+    for bad in (zoomed[:2], torch.full((3, 3), float("nan")), torch.diag(torch.tensor([0.0, 1.0, 1.0]))):
+        with pytest.raises(ValueError, match=r"reference_K must be a finite \[3,3\] matrix with positive focal "
+                                             r"lengths \(view 0 of .*transforms_train\.json\)"):
+            run(setup, tmp_path / "d", reference_K=bad)
+    assert not (tmp_path / "d").exists()  # refused before anything is written

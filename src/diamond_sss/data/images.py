@@ -159,8 +159,13 @@ def reframe(images: Tensor, K_from: Tensor, K_to: Tensor, mode: str = "bilinear"
     if images.ndim != 4 or K_from.shape != (images.shape[0], 3, 3) or K_to.shape != K_from.shape:
         raise ValueError(f"need images [N,C,H,W] and K_from / K_to [N,3,3], got {tuple(images.shape)}, "
                          f"{tuple(K_from.shape)} and {tuple(K_to.shape)}")
+    focal_from, focal_to = (K[:, :2, :2].diagonal(dim1=-2, dim2=-1) for K in (K_from, K_to))
+    if not (bool(torch.isfinite(K_from).all() and torch.isfinite(K_to).all()) and bool((focal_from > 0).all())
+            and bool((focal_to > 0).all())):
+        raise ValueError(f"K_from / K_to must be finite with positive focal lengths, got fx, fy {focal_from.tolist()} "
+                         f"and {focal_to.tolist()}")
     height, width = images.shape[-2:]
-    zoom_out = float((K_from[:, :2, :2].diagonal(dim1=-2, dim2=-1) / K_to[:, :2, :2].diagonal(dim1=-2, dim2=-1)).max())
+    zoom_out = float((focal_from / focal_to).max())
     factor = 1 if mode == "nearest" else max(1, math.ceil(zoom_out - 1e-6))
     mapping = K_from.double() @ torch.linalg.inv(scale_intrinsics(K_to.double(), factor))  # p' (supersampled) -> p
     grid = pixel_grid(factor * height, factor * width, device=images.device).double().reshape(-1, 2)

@@ -322,8 +322,10 @@ def generate_novel_views(
         )
     observation = dataset.observations[dataset.observation_index(view, light)]
     seen_K = dataset.intrinsics[view].double() if reference_K is None else reference_K.double().cpu()
-    if seen_K.shape != (3, 3):
-        raise ValueError(f"reference_K must be a [3,3] matrix, got {tuple(seen_K.shape)}")
+    if seen_K.shape != (3, 3) or not bool(torch.isfinite(seen_K).all()) or min(float(seen_K[0, 0]),
+                                                                                float(seen_K[1, 1])) <= 0:
+        raise ValueError(f"reference_K must be a finite [3,3] matrix with positive focal lengths (view {view} of "
+                         f"{dataset.json_path}), got {seen_K.tolist()}")
     frame = canonical_frame(dataset.viewmats, dataset.bounds.center, mean_up_vector(dataset.viewmats)) \
         if canonical else None
     output_size = min(cameras.size, config.image_size)
