@@ -608,6 +608,8 @@ def framed_references(ctx: PipelineContext, views: list[int]) -> dict[int, torch
     capture = OLATDataset(ctx.data, ctx.split)
     center = capture.bounds.center.double()
     radius = silhouette_radius(capture, ctx.selection.observations, center)
+    logger.info("nvs: the %d reference views resampled as the priors' training cameras frame the object "
+                "(rig_framing=prior; its sphere of radius %.3g)", len(views), radius)
     return {view: framed_camera_intrinsics(ctx.lattice.cameras[view], center, radius) for view in views}
 
 
