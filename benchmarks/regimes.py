@@ -223,6 +223,31 @@ def stage_seconds(run: Path) -> dict[str, float]:
     return {name: stage["seconds"] for name, stage in stages.items() if "seconds" in stage}
 
 
+def round_metrics(run: Path) -> list[dict]:
+    """Test PSNR and mask IoU of every round's final reconstruction of a pipeline folder run with ``rounds`` > 1
+    (``round<k>/final``, then ``final``), as the rounds ran; ``[]`` for a single round or a training run (the
+    rounds that are not evaluated yet are left out)."""
+    finals = sorted((path for path in run.glob("round*/final") if path.parent.name[5:].isdigit()),
+                    key=lambda path: int(path.parent.name[5:]))
+    if not finals:
+        return []
+    numbers = [int(final.parent.name[5:]) for final in finals]
+    rounds = []
+    for number, final in zip([*numbers, numbers[-1] + 1], [*finals, run / "final"], strict=True):
+        metrics_file = final / "eval_test" / "metrics.json"
+        if metrics_file.is_file():
+            metrics = read_json(metrics_file)
+            rounds.append({"round": number, "psnr": metrics["psnr"], "mask_iou": metrics["mask_iou"]})
+    return rounds
+
+
+def rounds_lines(rows: list[dict]) -> list[str]:
+    """Each pipeline row's test PSNR (mask IoU) round by round, as Markdown bullets; none when no row has rounds."""
+    return [f"- {r['object']}, {r.get('form', 'lattice')} `{r['regime']}`, {r['method']}: "
+            + " -> ".join(f"{item['psnr']:.2f} ({item['mask_iou']:.3f})" for item in r["rounds"])
+            for r in rows if len(r.get("rounds", [])) > 1]
+
+
 def sparse_capture(data: Path, out: Path, regime: str, seed: int) -> Path:
     """The ``sparse`` form of ``data`` under ``regime``: its images written as a capture of their own into
     ``out/captures/<name>_<regime>[_seed<N>]`` once (``diamond-sss subset``)."""
@@ -295,7 +320,10 @@ def markdown(rows: list[dict], iterations: int, note: str, ceilings: dict[str, f
                      f"{r['ssim']:.4f} | {r['mask_iou']:.3f} | {images} | {minutes} |")
     ceilings_part = ["", "Noise ceilings (the test split rendered again with independent noise):",
                      *ceiling_lines(rows, ceilings)] if ceilings else []
-    return "\n".join([*lines, "", "Targets:", *target_lines([*rows, *mean_rows(rows)]), *ceilings_part]) + "\n"
+    rounds = rounds_lines(rows)
+    rounds_part = ["", "Test PSNR (mask IoU) after each round:", *rounds] if rounds else []
+    return "\n".join([*lines, "", "Targets:", *target_lines([*rows, *mean_rows(rows)]), *rounds_part,
+                      *ceilings_part]) + "\n"
 
 
 def main() -> None:
@@ -361,6 +389,7 @@ def main() -> None:
                                             pipeline_set, args.tag, args.seed)
             rows.append({"object": data.name, "form": form, "regime": regime, "method": name, "run": str(runs / name),
                          "minutes": run_minutes(runs / name), "stages": stage_seconds(runs / name),
+                         "rounds": round_metrics(runs / name),
                          **{k: metrics.get(k) for k in (*METRICS, "real_images", "synthetic_images", "real_share")}})
             finals[grid_key(rows[-1])] = final
             print(json.dumps(rows[-1]), flush=True)

@@ -7,7 +7,7 @@
 # (`diamond-sss subset`: only the images of regime images=9 or images=30, seed 0, plus the test split), and
 # blob/wax once more at 256 px (32 spp) with only those 9 training images and the test split.
 # Not committed: written to outputs/heldout/ (<shape>_<material>, <shape>_<material>_sparse9, ..._sparse30,
-# blob_wax_256px_sparse9, far_knot_marble, far_knot_soap and their _sparse9). Resumable: a capture whose meta.json exists, or an export folder that exists, is skipped.
+# blob_wax_256px_sparse9, far_knot_marble, far_knot_soap, far_bunny_jade, far_bust_skin and their _sparse9). Resumable: a capture whose meta.json exists, or an export folder that exists, is skipped.
 # Usage: scripts/make_heldout_data.sh [PYTHON]   (about 15 min on 2 CPU cores)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -52,10 +52,11 @@ fi
 # A second rig whose framing differs from the priors' (issue 57 item 4): cameras farther (radius 5) with a 45-degree
 # field of view, so the object spans about half the image width (the priors' rig and the first held-out rig: 90%),
 # on a band from 12 degrees below the horizon to 53 above (z/r in [-0.2, 0.8]); lights on a band at radius 3.5,
-# each view lit by a random 8 of 24. The knot (a shape no prior saw) in two materials, each also as its 9 images.
+# each view lit by a random 8 of 24. The knot (a shape no prior saw) in two materials, and the bunny in jade and the
+# bust in skin (pairs neither the benchmark nor the embedded data use), each also as its 9 images.
 RIG_FAR=(--views 40 --lights 24 --lights-per-view 8 --test-views 8 --test-lights 6 --camera-radius 5
          --fov-x-deg 45 --camera-band -0.2 0.8 --light-radius 3.5 --light-band -0.3 1)
-for spec in knot:marble:25 knot:soap:26; do
+for spec in knot:marble:25 knot:soap:26 bunny:jade:27 bust:skin:28; do
     IFS=: read -r shape material seed <<< "$spec"
     name="far_${shape}_${material}"
     [[ -f "$OUT/$name/meta.json" ]] || cli synth --shape "$shape" --material "$material" --out "$OUT/$name" \

@@ -233,3 +233,23 @@ def test_stage_seconds_of_a_pipeline_folder(tmp_path):
                                                                     "nvs": {"seconds": 12.5, "targets": 3}}}))
     assert regimes.stage_seconds(tmp_path) == {"prelim": 0.0, "nvs": 12.5}
     assert regimes.stage_seconds(tmp_path / "a_training_run") == {}
+
+
+def test_round_metrics_of_a_pipeline_folder_in_round_order(tmp_path):
+    def evaluated(final, psnr, iou):
+        (final / "eval_test").mkdir(parents=True)
+        (final / "eval_test" / "metrics.json").write_text(json.dumps({"psnr": psnr, "mask_iou": iou, "ssim": 0.5}))
+
+    for k, psnr in ((1, 20.0), (2, 21.0), (10, 23.0)):
+        evaluated(tmp_path / f"round{k}" / "final", psnr, 0.9)
+    (tmp_path / "round3" / "final").mkdir(parents=True)  # not evaluated yet: left out
+    evaluated(tmp_path / "final", 24.5, 0.95)
+    rounds = regimes.round_metrics(tmp_path)
+    assert [item["psnr"] for item in rounds] == [20.0, 21.0, 23.0, 24.5]
+    assert [item["round"] for item in rounds] == [1, 2, 10, 11] and rounds[-1]["mask_iou"] == 0.95
+    single = tmp_path / "single"
+    evaluated(single / "final", 22.0, 0.9)
+    assert regimes.round_metrics(single) == [] and regimes.round_metrics(tmp_path / "absent") == []
+    rows = [{"object": "blob", "form": "sparse", "regime": "images=9", "method": "repair", "rounds": rounds[:2]},
+            {"object": "blob", "form": "sparse", "regime": "images=9", "method": "sss3dgs", "rounds": []}]
+    assert regimes.rounds_lines(rows) == ["- blob, sparse `images=9`, repair: 20.00 (0.900) -> 21.00 (0.900)"]
