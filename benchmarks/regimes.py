@@ -24,7 +24,8 @@ capture, on which the pipeline places the cameras and lights it generates (`pipe
 another rig: `scripts/make_heldout_data.sh`.
 
 Runs go to --out (resumable: a second call with the same arguments only collects); regimes.json, regimes.md and
-regimes_grid.png go to --results. --noise-ceilings adds each rendered capture's noise ceiling (its test split
+regimes_grid.png go to --results; a pipeline row of several rounds also gives each round's test PSNR and mask IoU
+(`rounds`, the last section of regimes.md). --noise-ceilings adds each rendered capture's noise ceiling (its test split
 rendered again with independent noise, once, into <out>/noise_reference; as `quality.py` does for the demo). The
 targets: at 9 images `full` beats `sss3dgs` by >= 2 dB PSNR and in mask IoU; at 30 images `full` is within 2 dB of
 `dense` (checked for every `full` variant); issue 57's, in both forms: `full` - `sss3dgs` >= +2 dB at 9 images
