@@ -18,7 +18,8 @@ from diamond_sss.data import OLATDataset
 from diamond_sss.data.analytic import make_capture_with_test_split
 from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.data.export import export_regime
-from diamond_sss.data.images import read_image_array
+from diamond_sss.data.images import read_image_array, write_png
+from diamond_sss.diffusion.common.manifest import GeneratedImage, read_image_manifest
 from diamond_sss.diffusion.relight.light import light_code
 from diamond_sss.diffusion.repair.config import INPUT_CHANNELS, RepairModelConfig, RepairTrainConfig
 from diamond_sss.diffusion.repair.data import RepairPairs, read_pair_metadata, target_image, write_pairs
@@ -27,7 +28,7 @@ from diamond_sss.diffusion.repair.model import RepairModel
 from diamond_sss.diffusion.repair.train import train_repair, validation
 from diamond_sss.errors import DataError
 from diamond_sss.pipeline.config import REPAIR_ROUNDS
-from diamond_sss.pipeline.run import PipelineConfig, checked_config, run_pipeline
+from diamond_sss.pipeline.run import PipelineConfig, checked_config, mask_area_ratio, run_pipeline
 from diamond_sss.runs.folder import load_scene
 from diamond_sss.training.run import train_from_preset
 from diamond_sss.utils.io import read_json
@@ -196,6 +197,11 @@ def test_run_with_augment_repair_makes_the_images_the_paper_stages_would(setup, 
     assert set(manifest["inputs"]["model_hashes"]) == {"repair"}
     # as nvs + relight: 2 new views under the 1 real light, then the 4 views with an image each relit to 1 more light
     assert manifest["stages"]["repair"]["images"] == 6
+    # the second round (the default) compares its masks with the first round's; the first has none to compare with
+    first = json.loads((tmp_path / "round1" / "pipeline.json").read_text())["stages"]["repair"]
+    assert "mask_area_vs_previous_round" not in first
+    ratio = mask_area_ratio(repaired_images_in(tmp_path), repaired_images_in(tmp_path / "round1"))[0]
+    assert manifest["stages"]["repair"]["mask_area_vs_previous_round"] == pytest.approx(ratio, abs=1e-4) and ratio > 0
     assert result["synthetic_images"] == 6 and result["real_images"] == 2
     repaired = OLATDataset(tmp_path / "synthetic", "train")
     assert len(repaired) == 6 and {"psnr", "mask_iou"} <= set(result)
@@ -317,3 +323,22 @@ def test_the_repair_stage_runs_on_the_idle_cores_says_so_and_makes_the_same_imag
     assert differences.max() <= 1 and (differences > 0).mean() <= 0.01
     with pytest.raises(ValueError, match=r"'generation_threads' \(--generation-threads\) must be >= 0"):
         checked_config(PipelineConfig(generation_threads=-1))
+
+
+def repaired_images_in(run):
+    return read_image_manifest(run / "repair" / "manifest.json")
+
+
+def test_mask_area_ratio_over_the_images_both_rounds_made(tmp_path):
+    def made(folder, view, light, pixels):
+        mask = np.zeros((4, 4), dtype=np.uint8)
+        mask.flat[:pixels] = 255
+        folder.mkdir(parents=True, exist_ok=True)
+        image = write_png(folder / f"v{view}_l{light}.png", np.zeros((4, 4, 3), dtype=np.uint8))
+        return GeneratedImage(view, light, image, write_png(folder / f"v{view}_l{light}_mask.png", mask))
+
+    now = [made(tmp_path / "now", 0, 0, 4), made(tmp_path / "now", 1, 0, 2), made(tmp_path / "now", 2, 0, 16)]
+    before = [made(tmp_path / "before", 0, 0, 8), made(tmp_path / "before", 1, 0, 4)]
+    assert mask_area_ratio(now, before) == (pytest.approx(6 / 12), 2)  # view 2 has no image in the round before
+    assert mask_area_ratio(now, []) is None
+    assert mask_area_ratio(now[:1], [made(tmp_path / "empty", 0, 0, 0)]) is None

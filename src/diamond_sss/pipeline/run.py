@@ -701,8 +701,31 @@ def repair_stage(ctx: PipelineContext) -> dict:
     scene = load_scene(ctx.prelim_dir, ctx.cfg.device)[0].eval()
     builder = RepairInputs(scene, ctx.lattice, ctx.real, ctx.selection.observations,
                            size=model.config.resolution)  # the model's size, at most the capture's
-    repair_targets(model, builder, targets, ctx.out / "repair", show_progress=ctx.show_progress)
-    return {"images": len(targets)}
+    written = repair_targets(model, builder, targets, ctx.out / "repair", show_progress=ctx.show_progress)
+    counts: dict[str, Any] = {"images": len(targets)}
+    previous = ctx.prelim_dir.parent / "repair" / MANIFEST_NAME  # the round before: the prelim is its final
+    if (ctx.prelim_dir.parent.resolve() != ctx.out.resolve() and previous.is_file()
+            and (compared := mask_area_ratio(written, read_image_manifest(previous))) is not None):
+        ratio, shared = compared
+        counts["mask_area_vs_previous_round"] = round(ratio, 4)
+        logger.info("repair: the generated masks cover %.1f%% of the previous round's (%d images of the same views and "
+                    "lights); each round's final reconstruction shrinks the outline it is given (issue 58: 91-92%% where "
+                    "a second round lost 0.23 dB and 0.03-0.05 mask IoU, 95-99%% where it gained; --rounds 1 keeps the "
+                    "first round's)", 100.0 * ratio, shared)
+    return counts
+
+
+def mask_area_ratio(current: list[GeneratedImage], previous: list[GeneratedImage]) -> tuple[float, int] | None:
+    """``sum_i A(current_i) / sum_i A(previous_i)`` over the images both lists hold (same view and light), with
+    ``A`` the sum of a mask's values (its area in pixels), and how many they share; None when they share none or the
+    previous masks are empty."""
+    before = {(item.view, item.light): item for item in previous}
+    shared = [(item, before[item.view, item.light]) for item in current if (item.view, item.light) in before]
+    if not shared:
+        return None
+    area_now = sum(float(load_rgba(item.image, item.mask)[1].sum()) for item, _ in shared)
+    area_before = sum(float(load_rgba(item.image, item.mask)[1].sum()) for _, item in shared)
+    return (area_now / area_before, len(shared)) if area_before > 0 else None
 
 
 def repaired_images(ctx: PipelineContext) -> list[GeneratedImage]:
