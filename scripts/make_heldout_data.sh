@@ -7,7 +7,7 @@
 # (`diamond-sss subset`: only the images of regime images=9 or images=30, seed 0, plus the test split), and
 # blob/wax once more at 256 px (32 spp) with only those 9 training images and the test split.
 # Not committed: written to outputs/heldout/ (<shape>_<material>, <shape>_<material>_sparse9, ..._sparse30,
-# blob_wax_256px_sparse9, far_knot_marble, far_knot_soap, far_bunny_jade, far_bust_skin and their _sparse9). Resumable: a capture whose meta.json exists, or an export folder that exists, is skipped.
+# blob_wax_256px_sparse9, far_knot_marble, far_knot_soap, far_bunny_jade, far_bust_skin, near_bunny_marble, near_knot_glazed_wax and their _sparse9). Resumable: a capture whose meta.json exists, or an export folder that exists, is skipped.
 # Usage: scripts/make_heldout_data.sh [PYTHON]   (about 15 min on 2 CPU cores)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -61,6 +61,20 @@ for spec in knot:marble:25 knot:soap:26 bunny:jade:27 bust:skin:28; do
     name="far_${shape}_${material}"
     [[ -f "$OUT/$name/meta.json" ]] || cli synth --shape "$shape" --material "$material" --out "$OUT/$name" \
         "${RIG_FAR[@]}" --size 64 --spp 64 --seed "$seed"
+    [[ -d "$OUT/${name}_sparse9" ]] || cli subset --data "$OUT/$name" --split train --regime images=9 --seed 0 \
+        --out "$OUT/${name}_sparse9"
+done
+# A third rig (issue 57's rounds question): cameras close (radius 2.5) with a 60-degree field of view, so the object
+# spans about 76% of the image width, on a band from 24 degrees below the horizon to 64 above (z/r in [-0.4, 0.9]);
+# lights on the full sphere at radius 4, each view lit by a random 10 of 24. Two more shape/material pairs, each also
+# as its 9 images.
+RIG_NEAR=(--views 40 --lights 24 --lights-per-view 10 --test-views 8 --test-lights 6 --camera-radius 2.5
+          --fov-x-deg 60 --camera-band -0.4 0.9 --light-radius 4 --light-band -1 1)
+for spec in bunny:marble:29 knot:glazed_wax:30; do
+    IFS=: read -r shape material seed <<< "$spec"
+    name="near_${shape}_${material}"
+    [[ -f "$OUT/$name/meta.json" ]] || cli synth --shape "$shape" --material "$material" --out "$OUT/$name" \
+        "${RIG_NEAR[@]}" --size 64 --spp 64 --seed "$seed"
     [[ -d "$OUT/${name}_sparse9" ]] || cli subset --data "$OUT/$name" --split train --regime images=9 --seed 0 \
         --out "$OUT/${name}_sparse9"
 done
