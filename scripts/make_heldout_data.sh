@@ -56,26 +56,25 @@ fi
 # bust in skin (pairs neither the benchmark nor the embedded data use), each also as its 9 images.
 RIG_FAR=(--views 40 --lights 24 --lights-per-view 8 --test-views 8 --test-lights 6 --camera-radius 5
          --fov-x-deg 45 --camera-band -0.2 0.8 --light-radius 3.5 --light-band -0.3 1)
-for spec in knot:marble:25 knot:soap:26 bunny:jade:27 bust:skin:28; do
-    IFS=: read -r shape material seed <<< "$spec"
-    name="far_${shape}_${material}"
-    [[ -f "$OUT/$name/meta.json" ]] || cli synth --shape "$shape" --material "$material" --out "$OUT/$name" \
-        "${RIG_FAR[@]}" --size 64 --spp 64 --seed "$seed"
-    [[ -d "$OUT/${name}_sparse9" ]] || cli subset --data "$OUT/$name" --split train --regime images=9 --seed 0 \
-        --out "$OUT/${name}_sparse9"
-done
 # A third rig (issue 57's rounds question): cameras close (radius 2.5) with a 60-degree field of view, so the object
 # spans about 76% of the image width, on a band from 24 degrees below the horizon to 64 above (z/r in [-0.4, 0.9]);
 # lights on the full sphere at radius 4, each view lit by a random 10 of 24. Two more shape/material pairs, each also
 # as its 9 images.
 RIG_NEAR=(--views 40 --lights 24 --lights-per-view 10 --test-views 8 --test-lights 6 --camera-radius 2.5
           --fov-x-deg 60 --camera-band -0.4 0.9 --light-radius 4 --light-band -1 1)
-for spec in bunny:marble:29 knot:glazed_wax:30; do
-    IFS=: read -r shape material seed <<< "$spec"
-    name="near_${shape}_${material}"
-    [[ -f "$OUT/$name/meta.json" ]] || cli synth --shape "$shape" --material "$material" --out "$OUT/$name" \
-        "${RIG_NEAR[@]}" --size 64 --spp 64 --seed "$seed"
-    [[ -d "$OUT/${name}_sparse9" ]] || cli subset --data "$OUT/$name" --split train --regime images=9 --seed 0 \
-        --out "$OUT/${name}_sparse9"
-done
+render_rig() {  # render_rig PREFIX RIG_ARRAY shape:material:seed...: each object on that rig, and its 9 images alone
+    local prefix=$1 spec shape material seed name
+    local -n rig=$2
+    shift 2
+    for spec in "$@"; do
+        IFS=: read -r shape material seed <<< "$spec"
+        name="${prefix}_${shape}_${material}"
+        [[ -f "$OUT/$name/meta.json" ]] || cli synth --shape "$shape" --material "$material" --out "$OUT/$name" \
+            "${rig[@]}" --size 64 --spp 64 --seed "$seed"
+        [[ -d "$OUT/${name}_sparse9" ]] || cli subset --data "$OUT/$name" --split train --regime images=9 --seed 0 \
+            --out "$OUT/${name}_sparse9"
+    done
+}
+render_rig far RIG_FAR knot:marble:25 knot:soap:26 bunny:jade:27 bust:skin:28
+render_rig near RIG_NEAR bunny:marble:29 knot:glazed_wax:30
 du -sh "$OUT"/*/
