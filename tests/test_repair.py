@@ -191,7 +191,9 @@ def test_run_with_augment_repair_makes_the_images_the_paper_stages_would(setup, 
                          min_silhouette_iou=0.0, min_mask_fraction=0.0, synthetic_weight=0.75, min_real_share=0.0)
     result = run_pipeline(data, tmp_path, regime=REGIME, overrides=TRAIN, config=cfg)
     assert weights["final"] == [0.75]  # repaired images weigh synthetic_weight, as generated ones
-    assert re.search(r"repair: 100%\|[^|]*\| 1/1 ", capsys.readouterr().err)
+    printed = capsys.readouterr()
+    assert re.search(r"repair: 100%\|[^|]*\| 1/1 ", printed.err)
+    assert re.search(r"repair: the generated masks cover \d+\.\d% of the previous round's area \(6 images\)", printed.out)
     manifest = json.loads((tmp_path / "pipeline.json").read_text())
     assert list(manifest["stages"]) == ["prelim", "repair", "final", "eval"]
     assert set(manifest["inputs"]["model_hashes"]) == {"repair"}

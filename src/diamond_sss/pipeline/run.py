@@ -708,10 +708,9 @@ def repair_stage(ctx: PipelineContext) -> dict:
             and (compared := mask_area_ratio(written, read_image_manifest(previous))) is not None):
         ratio, shared = compared
         counts["mask_area_vs_previous_round"] = round(ratio, 4)
-        logger.info("repair: the generated masks cover %.1f%% of the previous round's (%d images of the same views and "
-                    "lights); each round's final reconstruction shrinks the outline it is given (issue 58: 91-92%% where "
-                    "a second round lost 0.23 dB and 0.03-0.05 mask IoU, 95-99%% where it gained; --rounds 1 keeps the "
-                    "first round's)", 100.0 * ratio, shared)
+        print(f"repair: the generated masks cover {100.0 * ratio:.1f}% of the previous round's area ({shared} images); "
+              "each round's final reconstruction shrinks the outline it is given (issue 58): at 91-92% a second round "
+              "lost 0.23 dB and 0.03-0.05 mask IoU, at 95-99% it gained (--rounds 1 keeps the first round's)")
     return counts
 
 
