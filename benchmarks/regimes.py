@@ -238,6 +238,8 @@ def round_metrics(run: Path) -> list[dict]:
         metrics_file = final / "eval_test" / "metrics.json"
         if metrics_file.is_file():
             metrics = read_json(metrics_file)
+            if missing := [key for key in ("psnr", "mask_iou") if key not in metrics]:
+                raise ValueError(f"{metrics_file}: no {' or '.join(missing)} (an evaluation's metrics.json has both)")
             rounds.append({"round": number, "psnr": metrics["psnr"], "mask_iou": metrics["mask_iou"]})
     return rounds
 

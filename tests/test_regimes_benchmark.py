@@ -253,3 +253,6 @@ def test_round_metrics_of_a_pipeline_folder_in_round_order(tmp_path):
     rows = [{"object": "blob", "form": "sparse", "regime": "images=9", "method": "repair", "rounds": rounds[:2]},
             {"object": "blob", "form": "sparse", "regime": "images=9", "method": "sss3dgs", "rounds": []}]
     assert regimes.rounds_lines(rows) == ["- blob, sparse `images=9`, repair: 20.00 (0.900) -> 21.00 (0.900)"]
+    (tmp_path / "round1" / "final" / "eval_test" / "metrics.json").write_text(json.dumps({"ssim": 0.5}))
+    with pytest.raises(ValueError, match=r"round1/final/eval_test/metrics.json: no psnr or mask_iou"):
+        regimes.round_metrics(tmp_path)

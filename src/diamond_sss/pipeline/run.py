@@ -704,8 +704,12 @@ def repair_stage(ctx: PipelineContext) -> dict:
     written = repair_targets(model, builder, targets, ctx.out / "repair", show_progress=ctx.show_progress)
     counts: dict[str, Any] = {"images": len(targets)}
     previous = ctx.prelim_dir.parent / "repair" / MANIFEST_NAME  # the round before: the prelim is its final
-    if (ctx.prelim_dir.parent.resolve() != ctx.out.resolve() and previous.is_file()
-            and (compared := mask_area_ratio(written, read_image_manifest(previous))) is not None):
+    if ctx.prelim_dir.parent.resolve() != ctx.out.resolve() and previous.is_file():
+        compared = mask_area_ratio(written, read_image_manifest(previous))
+        if compared is None:
+            print(f"repair: no mask area compared with the previous round ({previous}): it shares no view and light "
+                  "with this round, or its masks are empty")
+            return counts
         ratio, shared = compared
         counts["mask_area_vs_previous_round"] = round(ratio, 4)
         print(f"repair: the generated masks cover {100.0 * ratio:.1f}% of the previous round's area ({shared} images); "
