@@ -49,6 +49,7 @@ from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.noise import noise_ceiling
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.experiments.ablation import regime_slug
+from diamond_sss.pipeline.rounds import round_metrics
 from diamond_sss.pipeline.run import PipelineConfig, checked_config, run_pipeline
 from diamond_sss.runs.folder import load_scene
 from diamond_sss.synth.render import noise_reference_config, synthesize
@@ -224,31 +225,17 @@ def stage_seconds(run: Path) -> dict[str, float]:
     return {name: stage["seconds"] for name, stage in stages.items() if "seconds" in stage}
 
 
-def round_metrics(run: Path) -> list[dict]:
-    """Test PSNR and mask IoU of every round's final reconstruction of a pipeline folder run with ``rounds`` > 1
-    (``round<k>/final``, then ``final``), as the rounds ran; ``[]`` for a single round or a training run (the
-    rounds that are not evaluated yet are left out)."""
-    finals = sorted((path for path in run.glob("round*/final") if path.parent.name[5:].isdigit()),
-                    key=lambda path: int(path.parent.name[5:]))
-    if not finals:
-        return []
-    numbers = [int(final.parent.name[5:]) for final in finals]
-    rounds = []
-    for number, final in zip([*numbers, numbers[-1] + 1], [*finals, run / "final"], strict=True):
-        metrics_file = final / "eval_test" / "metrics.json"
-        if metrics_file.is_file():
-            metrics = read_json(metrics_file)
-            if missing := [key for key in ("psnr", "mask_iou") if key not in metrics]:
-                raise ValueError(f"{metrics_file}: no {' or '.join(missing)} (an evaluation's metrics.json has both)")
-            rounds.append({"round": number, "psnr": metrics["psnr"], "mask_iou": metrics["mask_iou"]})
-    return rounds
-
-
 def rounds_lines(rows: list[dict]) -> list[str]:
-    """Each pipeline row's test PSNR (mask IoU) round by round, as Markdown bullets; none when no row has rounds."""
+    """Each pipeline row's test PSNR (mask IoU) round by round, as Markdown bullets, a later round's mask area against
+    the round before in brackets and ``kept`` where it kept that round's reconstruction; none when no row has
+    rounds."""
+
+    def step(item: dict) -> str:
+        area = "" if item.get("mask_area") is None else f"[masks {100 * item['mask_area']:.1f}%] "
+        return f"{area}{item['psnr']:.2f} ({item['mask_iou']:.3f}){' kept' if item.get('kept') else ''}"
+
     return [f"- {r['object']}, {r.get('form', 'lattice')} `{r['regime']}`, {r['method']}: "
-            + " -> ".join(f"{item['psnr']:.2f} ({item['mask_iou']:.3f})" for item in r["rounds"])
-            for r in rows if len(r.get("rounds", [])) > 1]
+            + " -> ".join(step(item) for item in r["rounds"]) for r in rows if len(r.get("rounds", [])) > 1]
 
 
 def sparse_capture(data: Path, out: Path, regime: str, seed: int) -> Path:

@@ -7,8 +7,9 @@
 # (`diamond-sss subset`: only the images of regime images=9 or images=30, seed 0, plus the test split), and
 # blob/wax once more at 256 px (32 spp) with only those 9 training images and the test split.
 # Not committed: written to outputs/heldout/ (<shape>_<material>, <shape>_<material>_sparse9, ..._sparse30,
-# blob_wax_256px_sparse9, far_knot_marble, far_knot_soap, far_bunny_jade, far_bust_skin, near_bunny_marble, near_knot_glazed_wax and their _sparse9). Resumable: a capture whose meta.json exists, or an export folder that exists, is skipped.
-# Usage: scripts/make_heldout_data.sh [PYTHON]   (about 15 min on 2 CPU cores)
+# blob_wax_256px_sparse9, far_knot_marble, far_knot_soap, far_bunny_jade, far_bust_skin, near_bunny_marble, near_knot_glazed_wax,
+# mid_knot_wax, mid_bust_glazed_wax, mid_bunny_glazed_wax and their _sparse9). Resumable: a capture whose meta.json exists, or an export folder that exists, is skipped.
+# Usage: scripts/make_heldout_data.sh [PYTHON]   (about 17 min on 2 CPU cores)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON="${1:-.venv/bin/python}"
@@ -62,6 +63,12 @@ RIG_FAR=(--views 40 --lights 24 --lights-per-view 8 --test-views 8 --test-lights
 # as its 9 images.
 RIG_NEAR=(--views 40 --lights 24 --lights-per-view 10 --test-views 8 --test-lights 6 --camera-radius 2.5
           --fov-x-deg 60 --camera-band -0.4 0.9 --light-radius 4 --light-band -1 1)
+# A fourth rig (issue 57's rounds question: framing between the far rig's and the near one's): cameras at radius 4
+# with a 46-degree field of view, so the object spans about 62% of the image width, on a band from 17 degrees below
+# the horizon to 58 above (z/r in [-0.3, 0.85]); lights on a band at radius 5, each view lit by a random 9 of 24.
+# The knot in wax and two compact shapes in glazed wax, each also as its 9 images.
+RIG_MID=(--views 40 --lights 24 --lights-per-view 9 --test-views 8 --test-lights 6 --camera-radius 4
+         --fov-x-deg 46 --camera-band -0.3 0.85 --light-radius 5 --light-band -0.5 1)
 render_rig() {  # render_rig PREFIX RIG_ARRAY shape:material:seed...: each object on that rig, and its 9 images alone
     local prefix=$1 spec shape material seed name
     local -n rig=$2
@@ -77,4 +84,5 @@ render_rig() {  # render_rig PREFIX RIG_ARRAY shape:material:seed...: each objec
 }
 render_rig far RIG_FAR knot:marble:25 knot:soap:26 bunny:jade:27 bust:skin:28
 render_rig near RIG_NEAR bunny:marble:29 knot:glazed_wax:30
+render_rig mid RIG_MID knot:wax:31 bust:glazed_wax:32 bunny:glazed_wax:33
 du -sh "$OUT"/*/

@@ -6,12 +6,15 @@ import json
 import math
 import sys
 
+import numpy as np
 import pytest
 from repo_scripts import load_script
 
 from diamond_sss.data.analytic import make_capture, make_capture_with_test_split
 from diamond_sss.data.dataset import OLATDataset
 from diamond_sss.data.errors import DataError
+from diamond_sss.data.images import write_png
+from diamond_sss.diffusion.common.manifest import GeneratedImage, image_paths, write_image_manifest
 
 regimes = load_script("benchmarks/regimes.py", "regimes_benchmark")
 
@@ -244,15 +247,31 @@ def test_round_metrics_of_a_pipeline_folder_in_round_order(tmp_path):
         evaluated(tmp_path / f"round{k}" / "final", psnr, 0.9)
     (tmp_path / "round3" / "final").mkdir(parents=True)  # not evaluated yet: left out
     evaluated(tmp_path / "final", 24.5, 0.95)
+    (tmp_path / "round2" / "pipeline.json").write_text(json.dumps(
+        {"stages": {"repair": {"mask_area_vs_previous_round": 0.956}, "final": {"real_images": 9}}}))
+    (tmp_path / "pipeline.json").write_text(json.dumps(
+        {"stages": {"repair": {"mask_area_vs_previous_round": 0.91}, "final": {"kept": "round10/final"}}}))
+    for folder, pixels in ((tmp_path / "round3", 8), (tmp_path / "round10", 6)):  # no ratio recorded: computed
+        mask = np.zeros((4, 4), dtype=np.uint8)
+        mask.flat[:pixels] = 255
+        image, mask_path = image_paths(folder / "repair", "v0_l1")
+        write_png(image, np.zeros((4, 4, 3), dtype=np.uint8))
+        write_png(mask_path, mask)
+        write_image_manifest(folder / "repair", [GeneratedImage(0, 1, image, mask_path)])
     rounds = regimes.round_metrics(tmp_path)
     assert [item["psnr"] for item in rounds] == [20.0, 21.0, 23.0, 24.5]
     assert [item["round"] for item in rounds] == [1, 2, 10, 11] and rounds[-1]["mask_iou"] == 0.95
+    assert [item["mask_area"] for item in rounds] == [None, 0.956, 0.75, 0.91]  # round 10 against round 3
+    assert [item["kept"] for item in rounds] == [False, False, False, True]
     single = tmp_path / "single"
     evaluated(single / "final", 22.0, 0.9)
     assert regimes.round_metrics(single) == [] and regimes.round_metrics(tmp_path / "absent") == []
     rows = [{"object": "blob", "form": "sparse", "regime": "images=9", "method": "repair", "rounds": rounds[:2]},
             {"object": "blob", "form": "sparse", "regime": "images=9", "method": "sss3dgs", "rounds": []}]
-    assert regimes.rounds_lines(rows) == ["- blob, sparse `images=9`, repair: 20.00 (0.900) -> 21.00 (0.900)"]
+    rows.insert(1, {**rows[0], "method": "repair seed 1", "rounds": rounds[2:]})
+    assert regimes.rounds_lines(rows) == [
+        "- blob, sparse `images=9`, repair: 20.00 (0.900) -> [masks 95.6%] 21.00 (0.900)",
+        "- blob, sparse `images=9`, repair seed 1: [masks 75.0%] 23.00 (0.900) -> [masks 91.0%] 24.50 (0.950) kept"]
     (tmp_path / "round1" / "final" / "eval_test" / "metrics.json").write_text(json.dumps({"ssim": 0.5}))
     with pytest.raises(ValueError, match=r"round1/final/eval_test/metrics.json: no psnr or mask_iou"):
         regimes.round_metrics(tmp_path)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -188,12 +189,14 @@ def test_run_with_augment_repair_makes_the_images_the_paper_stages_would(setup, 
 
     monkeypatch.setattr(pipeline_run, "train_run", recorded)
     cfg = PipelineConfig(augment=("repair",), repair_model=str(model), nvs_views=2, relight_lights=1,
-                         min_silhouette_iou=0.0, min_mask_fraction=0.0, synthetic_weight=0.75, min_real_share=0.0)
+                         min_silhouette_iou=0.0, min_mask_fraction=0.0, synthetic_weight=0.75, min_real_share=0.0,
+                         min_round_mask_area=0.0)
     result = run_pipeline(data, tmp_path, regime=REGIME, overrides=TRAIN, config=cfg)
     assert weights["final"] == [0.75]  # repaired images weigh synthetic_weight, as generated ones
     printed = capsys.readouterr()
     assert re.search(r"repair: 100%\|[^|]*\| 1/1 ", printed.err)
-    assert re.search(r"repair: the generated masks cover \d+\.\d% of the previous round's area \(6 images\)", printed.out)
+    assert re.search(r"repair: the generated masks cover \d+\.\d% of the previous round's area \(6 images\), at "
+                     r"least min_round_mask_area \(0%\): this round trains", printed.out)
     manifest = json.loads((tmp_path / "pipeline.json").read_text())
     assert list(manifest["stages"]) == ["prelim", "repair", "final", "eval"]
     assert set(manifest["inputs"]["model_hashes"]) == {"repair"}
@@ -207,6 +210,49 @@ def test_run_with_augment_repair_makes_the_images_the_paper_stages_would(setup, 
     assert result["synthetic_images"] == 6 and result["real_images"] == 2
     repaired = OLATDataset(tmp_path / "synthetic", "train")
     assert len(repaired) == 6 and {"psnr", "mask_iou"} <= set(result)
+
+
+def test_a_round_whose_masks_shrank_keeps_the_previous_rounds_reconstruction(setup, tmp_path, capsys, monkeypatch):
+    import diamond_sss.pipeline.run as pipeline_run
+
+    data, _, _, model = setup
+    trained, train_run = [], pipeline_run.train_run
+
+    def recorded(data, out, config, **kwargs):
+        trained.append(out.relative_to(tmp_path))
+        return train_run(data, out, config, **kwargs)
+
+    monkeypatch.setattr(pipeline_run, "train_run", recorded)
+    ratios = {}
+
+    def ratio(current, previous):
+        ratios[len(ratios)] = (found := mask_area_ratio(current, previous))
+        return (0.5 * found[0], found[1])  # round 2's masks at half of their area: under the threshold
+
+    monkeypatch.setattr(pipeline_run, "mask_area_ratio", ratio)
+    cfg = PipelineConfig(augment=("repair",), repair_model=str(model), nvs_views=2, relight_lights=1, rounds=3,
+                         min_silhouette_iou=0.0, min_mask_fraction=0.0, min_round_mask_area=0.9)
+    result = run_pipeline(data, tmp_path, regime=REGIME, overrides=TRAIN, config=cfg)
+    # only round 1 trains a final reconstruction; rounds 2 and 3 copy it (round 3 because round 2 kept)
+    assert trained == [Path("round1/prelim"), Path("round1/final")] and len(ratios) == 1
+    printed = capsys.readouterr().out
+    assert re.search(r"masks cover \d+\.\d% of the previous round's area \(6 images\), under min_round_mask_area "
+                     r"\(90%\).*this round keeps the previous round's final reconstruction", printed)
+    assert "kept the final reconstruction of the round before it; so does this round" in printed
+    rounds = [json.loads((folder / "pipeline.json").read_text())["stages"]
+              for folder in (tmp_path / "round1", tmp_path / "round2", tmp_path)]
+    assert rounds[1]["final"]["kept"] == str(tmp_path / "round1" / "final")
+    assert rounds[2]["final"]["kept"] == str(tmp_path / "round2" / "final")
+    assert rounds[1]["repair"]["mask_area_vs_previous_round"] == pytest.approx(0.5 * ratios[0][0], abs=1e-4)
+    assert "mask_area_vs_previous_round" not in rounds[2]["repair"]  # not compared: round 2 had stopped the rounds
+    for key in ("real_images", "synthetic_images", "real_share"):  # the kept reconstruction's counts
+        assert rounds[2]["final"][key] == rounds[0]["final"][key] == result[key]
+    first, last = (tmp_path / "round1" / "final" / "model.safetensors"), (tmp_path / "final" / "model.safetensors")
+    assert first.read_bytes() == last.read_bytes()
+    assert result["psnr"] == pytest.approx(rounds[0]["eval"]["psnr"], abs=1e-9)
+    assert result["round_psnr"] == pytest.approx([result["psnr"]] * 3)
+    with pytest.raises(ValueError, match=r"'min_round_mask_area' \(--min-round-mask-area\) must be in \[0, 1\]"):
+        checked_config(PipelineConfig(augment=("repair",), min_round_mask_area=1.5))
 
 
 def test_repair_is_refused_beside_the_paper_stages_or_without_a_model(setup, tmp_path):

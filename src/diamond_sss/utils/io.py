@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -43,6 +44,20 @@ def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path
         if tmp_path.exists():
             tmp_path.unlink()
     return path
+
+
+def atomic_copy_tree(source: str | os.PathLike, target: str | os.PathLike) -> Path:
+    """Copy the folder ``source`` to ``target`` (which must not exist) through a temporary folder beside it, renamed
+    into place: a crash leaves no ``target`` or a whole one (a leftover temporary folder is replaced next time)."""
+    target = Path(target)
+    if target.exists():
+        raise FileExistsError(f"{target}: exists; the copy of {source} would replace it")
+    partial = target.with_name(f".{target.name}.partial")
+    if partial.exists():
+        shutil.rmtree(partial)
+    shutil.copytree(source, partial)
+    os.replace(partial, target)
+    return target
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
