@@ -22,8 +22,19 @@ from diamond_sss.data.export import export_regime
 from diamond_sss.data.images import read_image_array, write_png
 from diamond_sss.diffusion.common.manifest import GeneratedImage, read_image_manifest
 from diamond_sss.diffusion.relight.light import light_code
-from diamond_sss.diffusion.repair.config import INPUT_CHANNELS, RepairModelConfig, RepairTrainConfig
-from diamond_sss.diffusion.repair.data import RepairPairs, read_pair_metadata, target_image, write_pairs
+from diamond_sss.diffusion.repair.config import (
+    IMAGE_CHANNELS,
+    INPUT_CHANNELS,
+    RepairModelConfig,
+    RepairTrainConfig,
+)
+from diamond_sss.diffusion.repair.data import (
+    RepairPairs,
+    read_pair_metadata,
+    shrunk_pair,
+    target_image,
+    write_pairs,
+)
 from diamond_sss.diffusion.repair.inputs import RepairInputs
 from diamond_sss.diffusion.repair.model import RepairModel
 from diamond_sss.diffusion.repair.train import train_repair, validation
@@ -151,6 +162,29 @@ def test_batches_crop_the_same_window_of_input_and_target():
         top, left = divmod(int(window[0, 0]), 10)
         assert torch.equal(window, pattern[0, 0, top:top + 4, left:left + 4])
     assert torch.equal(inputs[:, :4], targets)
+
+
+def test_a_shrunk_pair_is_the_area_resampled_image_placed_alike_in_input_and_target():
+    inputs = torch.zeros(INPUT_CHANNELS, 8, 8)
+    inputs[:IMAGE_CHANNELS, 2:6, 2:6] = 1.0  # a 4 x 4 object in the middle
+    inputs[IMAGE_CHANNELS:] = torch.arange(INPUT_CHANNELS - IMAGE_CHANNELS, dtype=torch.float32)[:, None, None]
+    targets = inputs[:4].clone() * 0.5
+    shrunk, target = shrunk_pair(inputs, targets, 0.5, torch.Generator().manual_seed(3))
+    assert shrunk.shape == inputs.shape and target.shape == targets.shape
+    covered = shrunk[0] > 0  # the 4 x 4 image the 8 x 8 one became holds the object as 2 x 2 pixels of value 1
+    assert int(covered.sum()) == 4 and torch.equal(shrunk[:IMAGE_CHANNELS][:, covered], torch.ones(IMAGE_CHANNELS, 4))
+    assert torch.equal(target[:, covered], torch.full((4, 4), 0.5)) and int((target[0] > 0).sum()) == 4
+    assert torch.equal(shrunk[IMAGE_CHANNELS:], inputs[IMAGE_CHANNELS:])  # the light code stays constant
+    rows, cols = covered.nonzero().unbind(1)
+    assert (rows.max() - rows.min(), cols.max() - cols.min()) == (1, 1)
+    edge = shrunk_pair(inputs, targets, 0.75, torch.Generator().manual_seed(0))[0][0]  # 6 x 6: partial pixels
+    assert edge.sum() == pytest.approx(16 * 0.75**2) and 0 < edge[edge > 0].min() < 1
+    pairs = RepairPairs(inputs[None].expand(3, -1, -1, -1).clone(), targets[None].expand(3, -1, -1, -1).clone(), [])
+    zoomed, _ = pairs.batch(6, 0, torch.Generator().manual_seed(1), zoom_out=0.5)
+    assert all(0.25 * 16 - 1e-5 <= float(image.sum()) <= 16 + 1e-5 for image in zoomed[:, 0])
+    assert not torch.equal(zoomed[:, 0], inputs[0].expand(6, -1, -1))
+    with pytest.raises(ValueError, match=r"zoom_out must be in \(0, 1\]"):
+        RepairTrainConfig(zoom_out=0.0)
 
 
 def test_training_lowers_the_error_and_resumes_exactly(setup, tmp_path):

@@ -738,7 +738,7 @@ def round_decision(cfg: PipelineConfig, written: list[GeneratedImage], previous_
         return record
     why = (f"{area}, under min_round_mask_area ({100.0 * cfg.min_round_mask_area:.0f}%): the previous round's final "
            "reconstruction shrank the outline it was given (issue 58); at 90-93% a further round changed the test "
-           "PSNR by -0.12 dB and the mask IoU by -0.018 on average (30 runs, 2 rigs), at 95-99% by +0.26 dB (32 "
+           "PSNR by -0.14 dB and the mask IoU by -0.019 on average (33 runs, 2 rigs), at 95-99% by +0.26 dB (32 "
            "runs, 2 rigs)")
     print(f"repair: {why}; this round keeps the previous round's final reconstruction (--min-round-mask-area 0 trains "
           "it anyway)")

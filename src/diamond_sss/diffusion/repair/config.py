@@ -10,6 +10,10 @@ INPUT_CHANNELS = 23
 """Render sRGB (3), alpha (1), normalised depth (1), camera-space normals (3), n.l (1), the warped real image
 (3) and its validity (1), the target light's code (10, :func:`~diamond_sss.diffusion.relight.light.light_code`)."""
 
+IMAGE_CHANNELS = 13
+"""The input's leading channels that vary over the image (render, G-buffer, warped real image); the light code after
+them is constant."""
+
 OUTPUT_CHANNELS = 4
 """Corrections of the render's premultiplied sRGB (3) and of its alpha (1)."""
 
@@ -51,6 +55,9 @@ class RepairTrainConfig:
     batch_size: int = described(16, "pairs per step")
     crop: int = described(32, "side of the random square crop of each pair a step trains on (0: whole images); "
                               "the network is convolutional, so it repairs whole images after training on crops")
+    zoom_out: float = described(1.0, "each drawn pair is shrunk by a random factor in [zoom_out, 1] (area "
+                                     "resampling) and put at a random place in an empty image of its size, as a "
+                                     "rig framing the object smaller sees it (1: pairs as made)")
     learning_rate: float = described(1e-3, "AdamW learning rate: linear warm-up, cosine decay to a tenth")
     warmup_steps: int = described(100, "steps of the learning rate's linear warm-up")
     weight_decay: float = described(1e-4, "AdamW weight decay")
@@ -71,5 +78,7 @@ class RepairTrainConfig:
             raise ValueError("repair training: batch_size must be >= 1; warmup_steps, validation_files and crop >= 0")
         if not self.learning_rate > 0.0 or self.weight_decay < 0.0 or self.alpha_weight < 0.0:
             raise ValueError("repair training: learning_rate must be > 0, weight_decay and alpha_weight >= 0")
+        if not 0.0 < self.zoom_out <= 1.0:
+            raise ValueError(f"repair training: zoom_out must be in (0, 1], got {self.zoom_out}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"repair training: ema_decay must be in [0, 1), got {self.ema_decay}")

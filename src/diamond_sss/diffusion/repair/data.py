@@ -14,13 +14,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 from safetensors import SafetensorError, safe_open
 from torch import Tensor
 from tqdm.auto import tqdm
 
 from diamond_sss.data.conventions import linear_to_srgb
 from diamond_sss.data.dataset import OLATDataset
-from diamond_sss.diffusion.repair.config import INPUT_CHANNELS, OUTPUT_CHANNELS
+from diamond_sss.diffusion.repair.config import IMAGE_CHANNELS, INPUT_CHANNELS, OUTPUT_CHANNELS
 from diamond_sss.diffusion.repair.inputs import RepairInputs
 from diamond_sss.errors import DamagedFileError, DataError
 from diamond_sss.runs.folder import load_scene
@@ -124,10 +125,16 @@ class RepairPairs:
     def __len__(self) -> int:
         return self.inputs.shape[0]
 
-    def batch(self, count: int, crop: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-        """``count`` random pairs (with replacement), each a random ``crop`` x ``crop`` window (0: whole)."""
+    def batch(self, count: int, crop: int, generator: torch.Generator,
+              zoom_out: float = 1.0) -> tuple[Tensor, Tensor]:
+        """``count`` random pairs (with replacement), each shrunk by a random factor in ``[zoom_out, 1]``
+        (:func:`shrunk_pair`) when ``zoom_out`` < 1, then a random ``crop`` x ``crop`` window (0: whole)."""
         index = torch.randint(0, len(self), (count,), generator=generator)
         inputs, targets = self.inputs[index], self.targets[index]
+        if zoom_out < 1.0:
+            factors = zoom_out + (1.0 - zoom_out) * torch.rand(count, generator=generator)
+            shrunk = [shrunk_pair(inputs[i], targets[i], float(factors[i]), generator) for i in range(count)]
+            inputs, targets = torch.stack([pair[0] for pair in shrunk]), torch.stack([pair[1] for pair in shrunk])
         height, width = inputs.shape[-2:]
         if crop <= 0 or crop >= min(height, width):
             return inputs, targets
@@ -141,4 +148,21 @@ class RepairPairs:
             return x.permute(0, 2, 3, 1)[pick, rows[:, :, None], cols[:, None, :]].permute(0, 3, 1, 2)
 
         return window(inputs), window(targets)
+
+
+def shrunk_pair(inputs: Tensor, targets: Tensor, factor: float, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """One pair (``[23, H, W]``, ``[4, H, W]``) as a rig framing the object ``factor`` times as large would see it:
+    every image channel area-resampled to ``round(factor H) x round(factor W)`` and put at a random place in an
+    empty (zero) image of the same size; the light code, constant over the image, is kept."""
+    height, width = inputs.shape[-2:]
+    small = (max(1, round(factor * height)), max(1, round(factor * width)))
+    top = int(torch.randint(0, height - small[0] + 1, (), generator=generator))
+    left = int(torch.randint(0, width - small[1] + 1, (), generator=generator))
+
+    def placed(images: Tensor) -> Tensor:
+        canvas = torch.zeros_like(images)
+        canvas[:, top:top + small[0], left:left + small[1]] = F.interpolate(images[None], size=small, mode="area")[0]
+        return canvas
+
+    return torch.cat([placed(inputs[:IMAGE_CHANNELS]), inputs[IMAGE_CHANNELS:]]), placed(targets)
 

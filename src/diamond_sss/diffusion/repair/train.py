@@ -95,7 +95,8 @@ def train_repair(pair_files: Sequence[str | os.PathLike], out: str | os.PathLike
     unwrapped.train()
 
     def step(index: int) -> tuple[Tensor, dict[str, float]]:
-        inputs, targets = pairs.batch(config.batch_size, config.crop, step_generator(config.seed, index))
+        inputs, targets = pairs.batch(config.batch_size, config.crop, step_generator(config.seed, index),
+                                      zoom_out=config.zoom_out)
         loss, terms = repair_loss(unwrapped, inputs.to(device), targets.to(device), config.alpha_weight)
         optimizer_step(accelerator, optimizer, schedule, ema, unwrapped, loss, config.max_grad_norm)
         return loss, terms
