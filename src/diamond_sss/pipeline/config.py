@@ -23,7 +23,7 @@ MIN_ROUND_MASK_AREA = 0.94
 """Default ``min_round_mask_area``. Over the 56 two-round repair runs of sessions 44-50 (three rigs, 9 and 30 images;
 ``benchmarks/results/ablation/pipeline_final_s51``) the ratio splits by rig: 0.903-0.934 on the rig that frames the
 object at half the priors' scale (24 runs, round 2 - round 1 -0.07 dB mean, mask IoU -0.014), 0.946-0.993 on the
-others (32 runs, +0.27 dB, IoU -0.002). Set before a fourth rig (object ~62% of the image width) was run: there the
+others (32 runs, +0.26 dB, IoU -0.002). Set before a fourth rig (object ~62% of the image width) was run: there the
 ratio was 0.913-0.930 on all 9 runs and round 2 changed the test PSNR by -0.31 dB on average (lower on 8), the mask
 IoU by -0.030 (lower on all 9; session 51)."""
 
