@@ -207,22 +207,27 @@ def recorded(run: Path) -> tuple[Path, dict] | None:
 
 def run_minutes(run: Path) -> float | None:
     """The minutes ``run`` recorded: a training run's training (``train_summary.json``), a pipeline folder's stages
-    (``pipeline.json``; a reused preliminary reconstruction records 0 s); ``None`` when it recorded none."""
-    summary, manifest = run / "train_summary.json", run / "pipeline.json"
+    over all its rounds (:func:`stage_seconds`; a reused preliminary reconstruction records 0 s); ``None`` when it
+    recorded none."""
+    summary = run / "train_summary.json"
     if summary.is_file():
         seconds = read_json(summary).get("seconds")
         return None if seconds is None else seconds / 60
-    if manifest.is_file():
-        stages = read_json(manifest).get("stages", {})
-        return sum(stage.get("seconds", 0.0) for stage in stages.values()) / 60
+    if (run / "pipeline.json").is_file():
+        return sum(stage_seconds(run).values()) / 60
     return None
 
 
 def stage_seconds(run: Path) -> dict[str, float]:
-    """Seconds of each stage a pipeline folder recorded (``pipeline.json``); ``{}`` for a training run."""
-    manifest = run / "pipeline.json"
-    stages = read_json(manifest).get("stages", {}) if manifest.is_file() else {}
-    return {name: stage["seconds"] for name, stage in stages.items() if "seconds" in stage}
+    """Seconds of each stage a pipeline folder recorded, summed over its rounds (``pipeline.json`` and
+    ``round<k>/pipeline.json``); ``{}`` for a training run."""
+    totals: dict[str, float] = {}
+    for manifest in [*sorted(run.glob("round*/pipeline.json")), run / "pipeline.json"]:
+        stages = read_json(manifest).get("stages", {}) if manifest.is_file() else {}
+        for name, stage in stages.items():
+            if "seconds" in stage:
+                totals[name] = totals.get(name, 0.0) + stage["seconds"]
+    return totals
 
 
 def rounds_lines(rows: list[dict]) -> list[str]:

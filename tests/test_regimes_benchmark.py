@@ -235,6 +235,11 @@ def test_stage_seconds_of_a_pipeline_folder(tmp_path):
     (tmp_path / "pipeline.json").write_text(json.dumps({"stages": {"prelim": {"seconds": 0.0, "reused": "x"},
                                                                     "nvs": {"seconds": 12.5, "targets": 3}}}))
     assert regimes.stage_seconds(tmp_path) == {"prelim": 0.0, "nvs": 12.5}
+    (tmp_path / "round1").mkdir()  # an earlier round's stages count too
+    (tmp_path / "round1" / "pipeline.json").write_text(json.dumps({"stages": {"prelim": {"seconds": 30.0},
+                                                                               "nvs": {"seconds": 10.0}}}))
+    assert regimes.stage_seconds(tmp_path) == {"prelim": 30.0, "nvs": 22.5}
+    assert regimes.run_minutes(tmp_path) == pytest.approx(52.5 / 60)
     assert regimes.stage_seconds(tmp_path / "a_training_run") == {}
 
 
