@@ -20,12 +20,15 @@ from diamond_sss.pipeline.rounds import round_metrics
 from diamond_sss.utils.io import atomic_write_json, atomic_write_text, read_json
 
 
-def run_row(run: Path) -> dict | None:
-    """One pipeline folder's rounds and its `sss3dgs` sibling's test metrics; None with fewer than two rounds or no
-    mask area for the last."""
+def run_row(run: Path) -> dict | str:
+    """One pipeline folder's rounds and its `sss3dgs` sibling's test metrics, or why it gives no row."""
+    if not (run / "pipeline.json").is_file():
+        return "not a pipeline folder (no pipeline.json)"
     rounds = round_metrics(run)
-    if len(rounds) < 2 or rounds[-1]["mask_area"] is None:
-        return None
+    if len(rounds) < 2:
+        return f"{len(rounds) or 'no'} evaluated round{'s' * (len(rounds) != 1)}; two or more are compared"
+    if rounds[-1]["mask_area"] is None:
+        return "its last round recorded no mask area and has no repair folders to compute it from"
     baseline = run.parent / "sss3dgs" / "eval_test" / "metrics.json"
     sss = read_json(baseline) if baseline.is_file() else {}
     return {"run": str(run), "rounds": rounds, "sss3dgs": sss.get("psnr"), "sss3dgs_mask_iou": sss.get("mask_iou")}
@@ -71,8 +74,13 @@ def main() -> None:
                         help="mask area at which the summary splits the runs")
     parser.add_argument("--note", default="", help="machine, date and settings, for the title")
     args = parser.parse_args()
-    rows = sorted((row for run in args.runs if (row := run_row(run)) is not None),
-                  key=lambda r: r["rounds"][-1]["mask_area"])
+    if not 0.0 <= args.threshold <= 1.0:
+        parser.error(f"--threshold must be in [0, 1], got {args.threshold}")
+    found = {run: run_row(run) for run in args.runs}
+    for run, why in found.items():
+        if isinstance(why, str):
+            print(f"{run}: skipped: {why}")
+    rows = sorted((row for row in found.values() if isinstance(row, dict)), key=lambda r: r["rounds"][-1]["mask_area"])
     if not rows:
         raise SystemExit("no pipeline folder given has two evaluated rounds with repaired masks to compare")
     sides = summary(rows, args.threshold)

@@ -31,10 +31,14 @@ def test_runs_are_sorted_by_mask_area_and_split_at_the_threshold(tmp_path, monke
     b = pipeline_folder(tmp_path / "b" / "repair", (25.0, 24.5), (0.95, 0.92), 0.91)
     c = pipeline_folder(tmp_path / "c" / "repair", (22.0, 22.0), (0.93, 0.93), 0.92, kept=True)
     (tmp_path / "single" / "final").mkdir(parents=True)  # one round: no row
+    (tmp_path / "single" / "pipeline.json").write_text(json.dumps({"stages": {}}))
     out = tmp_path / "out"
     monkeypatch.setattr(sys, "argv", ["rounds.py", str(a), str(b), str(c), str(tmp_path / "single"),
-                                      "--out", str(out), "--threshold", "0.94"])
+                                      str(tmp_path / "typo"), "--out", str(out), "--threshold", "0.94"])
     rounds.main()
+    printed = capsys.readouterr().out
+    assert f"{tmp_path / 'single'}: skipped: no evaluated rounds; two or more are compared" in printed
+    assert f"{tmp_path / 'typo'}: skipped: not a pipeline folder (no pipeline.json)" in printed
     report = json.loads((out / "rounds.json").read_text())
     assert [row["run"] for row in report["runs"]] == [str(b), str(c), str(a)]
     below, above = report["summary"]
@@ -45,7 +49,11 @@ def test_runs_are_sorted_by_mask_area_and_split_at_the_threshold(tmp_path, monke
     text = (out / "rounds.md").read_text()
     assert f"| {a} | 19.00 (0.900) | 20.00 (0.900) | 21.00 (0.910) | 0.960 | +1.00 dB, IoU +0.010 |" in text
     assert f"| {c} | - | 22.00 (0.930) | 22.00 (0.930) kept | 0.920 |" in text
-    assert "- below: 2 runs, masks 0.910-0.920, last - first round -0.25 dB, mask IoU -0.015" in capsys.readouterr().out
+    assert "- below: 2 runs, masks 0.910-0.920, last - first round -0.25 dB, mask IoU -0.015" in printed
     monkeypatch.setattr(sys, "argv", ["rounds.py", str(tmp_path / "single"), "--out", str(out)])
     with pytest.raises(SystemExit, match="no pipeline folder given has two evaluated rounds"):
         rounds.main()
+    monkeypatch.setattr(sys, "argv", ["rounds.py", str(a), "--out", str(out), "--threshold", "94"])
+    with pytest.raises(SystemExit):
+        rounds.main()
+    assert "--threshold must be in [0, 1], got 94.0" in capsys.readouterr().err
