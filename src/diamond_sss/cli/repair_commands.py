@@ -15,8 +15,8 @@ RepairTrainOptions = options_of(RepairTrainConfig)
 RepairModelOptions = options_of(RepairModelConfig)
 
 
-def repair_data(run: list[Path], out: Path, data: Path | None = None, split: str = "train", most: int = 200,
-                seed: int = 0, quiet: bool = False) -> None:
+def repair_data(run: list[Path], out: Path, data: Path | None = None, lattice: Path | None = None,
+                split: str = "train", most: int = 200, seed: int = 0, quiet: bool = False) -> None:
     """Write the repair model's training pairs of finished sparse reconstructions: each run rendered at the images
     of its capture it did not see (input: render, G-buffer, warped nearest real image, light code), against the true
     images. One file per run, <out>/<run folder name>.safetensors; an existing file is kept.
@@ -25,6 +25,8 @@ def repair_data(run: list[Path], out: Path, data: Path | None = None, split: str
         run: finished `diamond-sss train` run folders (their data.json names the capture).
         out: folder of the pair files.
         data: the capture, when the runs' data.json does not name it (the same for every run).
+        lattice: a twin of the capture (its rig and seed, other intrinsics: e.g. framed at the object as the
+            pipeline's generated cameras are) whose images the pairs are made at.
         split: the capture's split the runs trained on.
         most: at most this many pairs per run, a seeded draw (0: every unseen image).
         seed: seed of that draw.
@@ -38,7 +40,7 @@ def repair_data(run: list[Path], out: Path, data: Path | None = None, split: str
         if path.is_file():
             console.print(f"{path}: exists, kept")
             continue
-        write_pairs(folder, path, data=data, split=split, most=most, seed=seed, show_progress=not quiet)
+        write_pairs(folder, path, data=data, lattice=lattice, split=split, most=most, seed=seed, show_progress=not quiet)
         console.print(f"repair pairs -> {path}")
 
 

@@ -25,7 +25,9 @@ MIN_ROUND_MASK_AREA = 0.94
 object at half the priors' scale (24 runs, round 2 - round 1 -0.07 dB mean, mask IoU -0.014), 0.946-0.993 on the
 others (32 runs, +0.26 dB, IoU -0.002). Set before a fourth rig (object ~62% of the image width) was run: there the
 ratio was 0.910-0.930 on all 15 runs; on the 9 that ran both rounds, round 2 changed the test PSNR by -0.31 dB on
-average (lower on 8), the mask IoU by -0.030 (lower on all 9; session 51)."""
+average (lower on 8), the mask IoU by -0.030 (lower on all 9; session 51). Set with the shipped repair model: one
+trained with pairs from two more rigs (``scripts/make_repair_rig_pairs.sh``) shrank the far rig's masks less (0.965 /
+0.971) and the second round still lost 0.82 / 0.46 dB (session 52), so another model needs its own threshold."""
 
 SHORT_RUN_PRELIM_PRESET = "sss3dgs"
 """Preset of a short run's preliminary reconstruction (``diamond-sss run --short-run``), as the demo and

@@ -733,8 +733,10 @@ def round_decision(cfg: PipelineConfig, written: list[GeneratedImage], previous_
     record: dict[str, Any] = {"mask_area_vs_previous_round": round(ratio, 4)}
     area = f"the generated masks cover {100.0 * ratio:.1f}% of the previous round's area ({shared} images)"
     if ratio >= cfg.min_round_mask_area:
+        caveat = ("; the threshold was measured with the shipped repair model, not --repair-model's: "
+                  "benchmarks/rounds.py on your runs measures it for yours" if cfg.repair_model is not None else "")
         print(f"repair: {area}, at least min_round_mask_area ({100.0 * cfg.min_round_mask_area:.0f}%): this round "
-              "trains")
+              f"trains{caveat}")
         return record
     why = (f"{area}, under min_round_mask_area ({100.0 * cfg.min_round_mask_area:.0f}%): the previous round's final "
            "reconstruction shrank the outline it was given (issue 58); at 90-93% a further round changed the test "

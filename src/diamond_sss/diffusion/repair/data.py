@@ -1,5 +1,7 @@
 """Training pairs of the repair model: a sparse reconstruction rendered at the lattice images it did not see (the
-model's input, :mod:`.inputs`) against the true images there.
+model's input, :mod:`.inputs`) against the true images there. The lattice may be a twin capture of the same cameras
+and lights with other intrinsics (e.g. framed at the object as the pipeline's generated cameras are,
+:mod:`diamond_sss.pipeline.rig`), so that the pairs are made where the pipeline repairs.
 
 A pair file (``safetensors``, written atomically) holds ``inputs [N, 23, H, W]`` and ``targets [N, 4, H, W]``
 (premultiplied sRGB and alpha) in float16, and in its metadata the capture, the run and the model-hash of the
@@ -43,10 +45,29 @@ def unseen_observations(dataset: OLATDataset, seen: Sequence[int], most: int, se
     return unseen
 
 
-def write_pairs(run: Path, out: Path, *, data: Path | None = None, split: str = "train", most: int = 200,
-                seed: int = 0, show_progress: bool = True) -> Path:
+def check_same_rig(capture: OLATDataset, twin: OLATDataset, tolerance: float = 1e-4) -> None:
+    """Raise :class:`DataError` unless ``twin`` has ``capture``'s views and lights, in the same order: camera centres
+    and light positions within ``tolerance`` of the capture's camera distance (intrinsics may differ)."""
+    where = f"{twin.json_path} (the lattice twin of {capture.json_path})"
+    if (twin.num_views, twin.num_lights) != (capture.num_views, capture.num_lights):
+        raise DataError(f"{where}: {twin.num_views} views and {twin.num_lights} lights, the capture has "
+                        f"{capture.num_views} and {capture.num_lights}; render the twin with the capture's rig and seed")
+    scale = float(capture.camera_centers.norm(dim=-1).max())
+    for name, ours, theirs in (("camera centre", twin.camera_centers, capture.camera_centers),
+                               ("light position", twin.light_positions, capture.light_positions)):
+        offset = (ours - theirs).norm(dim=-1)
+        worst = int(torch.argmax(offset))
+        if float(offset[worst]) > tolerance * scale:
+            raise DataError(f"{where}: {name} {worst} is {float(offset[worst]):.4g} away from the capture's; the twin "
+                            "must keep the capture's cameras and lights and change only the intrinsics")
+
+
+def write_pairs(run: Path, out: Path, *, data: Path | None = None, lattice: Path | None = None,
+                split: str = "train", most: int = 200, seed: int = 0, show_progress: bool = True) -> Path:
     """Pairs of the reconstruction in ``run`` (a finished ``train`` run folder; ``regime.json`` names the images it
-    saw) on the capture ``data`` (default: the one its ``data.json`` names), written to ``out``."""
+    saw) on the capture ``data`` (default: the one its ``data.json`` names), written to ``out``: at the capture's
+    images it did not see, or at those of ``lattice`` (the same split of a twin capture, :func:`check_same_rig`)
+    whose view and light it did not see."""
     run = Path(run)
     regime_file, data_file = run / "regime.json", run / "data.json"
     if not regime_file.is_file():
@@ -66,17 +87,24 @@ def write_pairs(run: Path, out: Path, *, data: Path | None = None, split: str = 
     if max(seen, default=-1) >= len(dataset.observations):
         raise DataError(f"{regime_file}: observation {max(seen)} is not in {dataset.json_path} "
                         f"({len(dataset.observations)} images): the run was trained on another capture")
-    builder = RepairInputs(scene.eval(), dataset, dataset, seen)
+    targets_of = dataset
+    if lattice is not None:
+        targets_of = OLATDataset(lattice, split, downscale=cfg.runtime.downscale)
+        check_same_rig(dataset, targets_of)
+    seen_pairs = {(dataset.observations[i].view, dataset.observations[i].light) for i in seen}
+    seen_there = [i for i, obs in enumerate(targets_of.observations) if (obs.view, obs.light) in seen_pairs]
+    builder = RepairInputs(scene.eval(), targets_of, dataset, seen)
     inputs, targets = [], []
-    for index in tqdm(unseen_observations(dataset, seen, most, seed), desc=f"repair pairs {run.name}", unit="pair",
-                      disable=not show_progress, dynamic_ncols=True):
-        obs = dataset.observations[index]
+    for index in tqdm(unseen_observations(targets_of, seen_there, most, seed), desc=f"repair pairs {run.name}",
+                      unit="pair", disable=not show_progress, dynamic_ncols=True):
+        obs = targets_of.observations[index]
         inputs.append(builder.target(obs.view, obs.light)[0].half())
-        targets.append(target_image(dataset, index).half())
+        targets.append(target_image(targets_of, index).half())
     if not inputs:
-        raise DataError(f"{run}: the reconstruction saw every image of {dataset.json_path}: no pair to make")
+        raise DataError(f"{run}: the reconstruction saw every image of {targets_of.json_path}: no pair to make")
     metadata = {"run": str(run.resolve()), "data": str(Path(data).resolve()),
-                "model_sha256": sha256_file(run / "model.safetensors"), "pairs": str(len(inputs))}
+                "lattice": str(targets_of.root), "model_sha256": sha256_file(run / "model.safetensors"),
+                "pairs": str(len(inputs))}
     return atomic_save_safetensors(out, {"inputs": torch.stack(inputs), "targets": torch.stack(targets)},
                                    metadata=metadata)
 

@@ -57,8 +57,8 @@ def render_channels(render: SceneRender, w2c: Tensor, K: Tensor, light_position:
 class RepairInputs:
     """Builds :func:`target` inputs on the cameras and lights of ``lattice`` from ``scene`` and the real images
     ``real_indices`` of ``real`` (the images ``scene`` was trained on; their view and light indices are the
-    lattice's, as :func:`~diamond_sss.pipeline.rig.write_lattice` keeps them). Each real view's depth is rendered
-    once."""
+    lattice's, as :func:`~diamond_sss.pipeline.rig.write_lattice` keeps them; they are warped from ``real``'s
+    cameras). Each real view's depth is rendered once."""
 
     def __init__(self, scene: RelightableScene, lattice: OLATDataset, real: OLATDataset,
                  real_indices: Sequence[int], size: int | None = None) -> None:
@@ -91,10 +91,10 @@ class RepairInputs:
         return candidates[int(torch.argmax(similarity))]
 
     def surface_depth(self, view: int) -> Tensor:
-        """The render's camera z at lattice view ``view`` (its own size) where it has a surface, else 0:
+        """The render's camera z at real view ``view`` (its own size) where it has a surface, else 0:
         ``[1, H, W]``."""
         if view not in self._depth:
-            g = render_lattice_image(self.scene, self.lattice, view, 0).gbuffer
+            g = render_lattice_image(self.scene, self.real, view, 0).gbuffer
             self._depth[view] = torch.where(g.alpha[0, ..., 0] >= SURFACE_ALPHA, g.depth[0, ..., 0], 0.0)[None].cpu()
         return self._depth[view]
 
@@ -105,7 +105,7 @@ class RepairInputs:
         if index is None:
             return torch.zeros(4, height, width)
         sample = self.real.load(index)
-        source = self.lattice.cameras[sample.view]
+        source = self.real.cameras[sample.view]
         reference = linear_to_srgb(sample.rgb.clamp(0, 1)).permute(2, 0, 1)
         size = max(width, height)  # pixel intrinsics: a square canvas cropped to the image
         image, valid = forward_warp(reference, self.surface_depth(sample.view), source.w2c, source.K, w2c[None],
