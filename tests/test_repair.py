@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +41,13 @@ from diamond_sss.diffusion.repair.model import RepairModel
 from diamond_sss.diffusion.repair.train import train_repair, validation
 from diamond_sss.errors import DataError
 from diamond_sss.pipeline.config import REPAIR_ROUNDS
-from diamond_sss.pipeline.run import PipelineConfig, checked_config, mask_area_ratio, run_pipeline
+from diamond_sss.pipeline.run import (
+    PipelineConfig,
+    checked_config,
+    mask_area_ratio,
+    previous_round_folder,
+    run_pipeline,
+)
 from diamond_sss.runs.folder import load_scene
 from diamond_sss.training.run import train_from_preset
 from diamond_sss.utils.io import read_json
@@ -320,8 +327,26 @@ def test_a_round_whose_masks_shrank_keeps_the_previous_rounds_reconstruction(set
     assert first.read_bytes() == last.read_bytes()
     assert result["psnr"] == pytest.approx(rounds[0]["eval"]["psnr"], abs=1e-9)
     assert result["round_psnr"] == pytest.approx([result["psnr"]] * 3)
+    trained.clear()
+    run_pipeline(data, tmp_path / "other", regime=REGIME, overrides=TRAIN,
+                 config=replace(cfg, rounds=1, prelim_run=str(tmp_path / "round1" / "final")))
+    # another pipeline's round is this one's preliminary reconstruction, not a previous round: compared with nothing
+    assert trained == [Path("other/final")] and len(ratios) == 1
+    assert "mask_area_vs_previous_round" not in json.loads((tmp_path / "other" / "pipeline.json").read_text())[
+        "stages"]["repair"]
     with pytest.raises(ValueError, match=r"'min_round_mask_area' \(--min-round-mask-area\) must be in \[0, 1\]"):
         checked_config(PipelineConfig(augment=("repair",), min_round_mask_area=1.5))
+
+
+def test_the_previous_round_is_the_round_before_in_the_same_pipeline_only(tmp_path):
+    run = tmp_path / "run"
+    assert previous_round_folder(run, run / "round2" / "final") == (run / "round2").resolve()  # the last round
+    assert previous_round_folder(run / "round2", run / "round1" / "final") == (run / "round1").resolve()
+    assert previous_round_folder(run / "round3", run / "round1" / "final") is None  # not the round before
+    assert previous_round_folder(run, run / "prelim") is None  # a first round's own preliminary reconstruction
+    assert previous_round_folder(run, tmp_path / "other" / "final") is None  # another pipeline's final
+    assert previous_round_folder(run, tmp_path / "other" / "round1" / "final") is None
+    assert previous_round_folder(run, run / "roundx" / "final") is None
 
 
 def test_repair_is_refused_beside_the_paper_stages_or_without_a_model(setup, tmp_path):

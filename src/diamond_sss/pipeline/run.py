@@ -708,10 +708,25 @@ def repair_stage(ctx: PipelineContext) -> dict:
                            size=model.config.resolution)  # the model's size, at most the capture's
     written = repair_targets(model, builder, targets, ctx.out / "repair", show_progress=ctx.show_progress)
     counts: dict[str, Any] = {"images": len(targets)}
-    previous_round = ctx.prelim_dir.parent  # a later round: the prelim is the round before's final
-    if previous_round.resolve() == ctx.out.resolve() or not (previous_round / "repair" / MANIFEST_NAME).is_file():
+    previous_round = previous_round_folder(ctx.out, ctx.prelim_dir)
+    if previous_round is None or not (previous_round / "repair" / MANIFEST_NAME).is_file():
         return counts
     return {**counts, **round_decision(ctx.cfg, written, previous_round)}
+
+
+def previous_round_folder(out: Path, prelim_dir: Path) -> Path | None:
+    """The folder of the round before the one running into ``out`` when ``prelim_dir`` is that round's final
+    reconstruction as :func:`run_pipeline` lays the rounds out (``out/round<R-1>/final`` for the last round,
+    ``<out's parent>/round<k-1>/final`` for round ``k`` in ``round<k>``); None for a first round, and for a
+    ``--prelim-run`` from anywhere else (another pipeline's final is not a previous round of this one)."""
+    out, prelim_dir = Path(out).resolve(), Path(prelim_dir).resolve()
+    folder = prelim_dir.parent
+    number = folder.name.removeprefix("round")
+    if prelim_dir.name != "final" or not folder.name.startswith("round") or not number.isdigit():
+        return None
+    if folder.parent == out or (folder.parent == out.parent and out.name == f"round{int(number) + 1}"):
+        return folder
+    return None
 
 
 def round_decision(cfg: PipelineConfig, written: list[GeneratedImage], previous_round: Path) -> dict[str, Any]:
