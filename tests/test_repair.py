@@ -273,6 +273,7 @@ def test_run_with_augment_repair_makes_the_images_the_paper_stages_would(setup, 
     assert re.search(r"repair: the generated masks cover \d+\.\d% of the previous round's area \(6 images\), at "
                      r"least min_round_mask_area \(0%\): this round trains; the threshold was measured with the "
                      r"shipped repair model, not --repair-model's", printed.out)
+    assert "round of another pipeline" not in printed.out  # round 1's own preliminary reconstruction
     manifest = json.loads((tmp_path / "pipeline.json").read_text())
     assert list(manifest["stages"]) == ["prelim", "repair", "final", "eval"]
     assert set(manifest["inputs"]["model_hashes"]) == {"repair"}
@@ -332,6 +333,8 @@ def test_a_round_whose_masks_shrank_keeps_the_previous_rounds_reconstruction(set
                  config=replace(cfg, rounds=1, prelim_run=str(tmp_path / "round1" / "final")))
     # another pipeline's round is this one's preliminary reconstruction, not a previous round: compared with nothing
     assert trained == [Path("other/final")] and len(ratios) == 1
+    assert "is a round of another pipeline, not a previous round of this one: no mask area compared, this round " \
+           "trains" in capsys.readouterr().out
     assert "mask_area_vs_previous_round" not in json.loads((tmp_path / "other" / "pipeline.json").read_text())[
         "stages"]["repair"]
     with pytest.raises(ValueError, match=r"'min_round_mask_area' \(--min-round-mask-area\) must be in \[0, 1\]"):

@@ -709,6 +709,10 @@ def repair_stage(ctx: PipelineContext) -> dict:
     written = repair_targets(model, builder, targets, ctx.out / "repair", show_progress=ctx.show_progress)
     counts: dict[str, Any] = {"images": len(targets)}
     previous_round = previous_round_folder(ctx.out, ctx.prelim_dir)
+    elsewhere = ctx.prelim_dir.parent.resolve() != ctx.out.resolve()  # not this round's own preliminary one
+    if previous_round is None and elsewhere and (ctx.prelim_dir.parent / "repair" / MANIFEST_NAME).is_file():
+        print(f"repair: the preliminary reconstruction ({ctx.prelim_dir}) is a round of another pipeline, not a "
+              "previous round of this one: no mask area compared, this round trains")
     if previous_round is None or not (previous_round / "repair" / MANIFEST_NAME).is_file():
         return counts
     return {**counts, **round_decision(ctx.cfg, written, previous_round)}
