@@ -14,10 +14,10 @@ REPAIR_ROUNDS = 2
 """Default rounds of ``--augment repair``: on held-out objects at 9 images a second round (repairing the first
 final reconstruction's renders) gained +1.10 / +0.40 dB on the deciding objects, +0.19 / +0.75 on the reporting
 ones (session 44, ``benchmarks/RESULTS.md``). Over every two-round run since (session 50): +0.48 dB mean at 9 images
-(12 runs), +0.16 at 30 (12), +0.01 on a rig framing the object at half the priors' scale (its knots, 16), and -0.23
-on that rig's compact shapes (8), whose mask IoU it lowers by 0.03-0.05 as each round's generated masks shrink (to
-91-92% of the round before's area there, 95-99% on the first rig; the repair stage records and prints the ratio,
-``mask_area_vs_previous_round``): there one round is better, and ``MIN_ROUND_MASK_AREA`` stops the rounds."""
+(12 runs), +0.10 at 30 (16; session 52), +0.01 on a rig framing the object at half the priors' scale (its knots,
+16), and -0.23 on that rig's compact shapes (8), whose mask IoU it lowers by 0.03-0.05 as each round's generated
+masks shrink (to 91-92% of the round before's area there, 95-99% on the first rig; the repair stage records and
+prints the ratio, ``mask_area_vs_previous_round``): there one round is better, and ``MIN_ROUND_MASK_AREA`` stops the rounds."""
 
 MIN_ROUND_MASK_AREA = 0.94
 """Default ``min_round_mask_area``. Over the 56 two-round repair runs of sessions 44-50 (three rigs, 9 and 30 images;
