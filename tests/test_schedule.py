@@ -232,6 +232,8 @@ def test_the_default_preset_trains_with_the_short_run_settings(tmp_path, monkeyp
         assert seen["prelim_overrides"] == {**short_run_overrides(2000), "sss_width": 32}
         assert seen["config"].prelim_preset == "sss3dgs"  # the benchmarks' preliminary reconstruction
         assert "preliminary reconstruction (sss3dgs): the same settings without losses.photometric_error=rmse" in said
+        prelim_line = said.split("preliminary reconstruction (sss3dgs):")[1]
+        assert "with a sparse capture's" in prelim_line and "losses.lambda_sil=0.0" in prelim_line  # named, not silent
         main([*base, *flag, "--prelim-preset", "diamond"])
         assert seen["config"].prelim_preset == "diamond"
     main([*base, *flag])
@@ -295,6 +297,7 @@ def test_a_sparse_run_on_real_images_says_its_multi_view_terms_are_off_and_set_t
         assert (losses.lambda_sil, losses.lambda_depth) == terms, extra
         assert seen["trained"].multiview.source_gradient == "centres"
         assert ("the multi-view silhouette and depth terms are off" in said) == said_off, extra
+        assert ("--set lambda_sil=0.5 --set lambda_depth=0.3 turns them on" in said) == said_off, extra
 
 
 def test_pipeline_iterations_scale_the_schedule_unless_kept(tmp_path, monkeypatch):

@@ -75,8 +75,11 @@ def run(data: Path, out: Path, split: str = "train", regime: str = "views=5%,lig
         cfg = replace(cfg, prelim_preset=prelim_preset)
         prelim_overrides = {**prelim_schedule, **sets}
         final_only = ", ".join(f"{key}={schedule[key]}" for key in schedule if key not in prelim_schedule)
+        prelim_only = ", ".join(f"{key}={value}" for key, value in prelim_schedule.items()
+                                if key not in schedule or schedule[key] != value)
         said = (f"final reconstruction ({preset}): {said}\npreliminary reconstruction ({cfg.prelim_preset}): the same "
                 f"settings" + (f" without {final_only}" if final_only else "")
+                + (f"; with a sparse capture's {prelim_only} (on the real images alone)" if prelim_only else "")
                 + (" (not trained: --prelim-run gives it)" if cfg.prelim_run else ""))
     if augment.strip() == "auto":
         said = "\n".join(filter(None, [said, f"--augment auto -> {','.join(cfg.augment) or 'none'}: {AUTO_AUGMENT_WHY}"]))
