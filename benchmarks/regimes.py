@@ -53,7 +53,7 @@ from diamond_sss.pipeline.rounds import round_metrics
 from diamond_sss.pipeline.run import PipelineConfig, checked_config, run_pipeline
 from diamond_sss.runs.folder import load_scene
 from diamond_sss.synth.render import noise_reference_config, synthesize
-from diamond_sss.training.config import MULTIVIEW_WEIGHTS, short_schedule
+from diamond_sss.training.config import short_schedule
 from diamond_sss.training.overrides import make_config
 from diamond_sss.training.run import train_run
 from diamond_sss.training.run_folder import move_aside_if_trained_otherwise
@@ -163,8 +163,7 @@ def run_method(method: str, data: Path, runs: Path, regime: str, iterations: int
     if method in ("sss3dgs", "+mv", "dense"):
         run = runs / method
         preset = "sss3dgs" if method == "sss3dgs" else "diamond"
-        terms = MULTIVIEW_WEIGHTS if method == "+mv" else {}  # a sparse short run turns them off: SPARSE_MULTIVIEW
-        config = make_config(preset, overrides={**overrides, **terms})
+        config = make_config(preset, overrides=overrides)
         move_aside_if_trained_otherwise(run, config)  # settings changed since: again
         if not (run / "model.safetensors").is_file():  # a finished run is not resumed (that retrains its last part)
             train_run(data, run, config, regime="all" if method == "dense" else regime, resume=True,

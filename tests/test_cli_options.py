@@ -196,10 +196,6 @@ def test_ablate_trains_the_benchmarks_short_schedule_and_densifies_within_its_st
         assert cfg.schedule.batch_size == (DENSE_SHORT_RUN["batch_size"] if regime == "all" else 1)
     assert configs["all", "+both"].losses.lambda_sil == make_config("diamond").losses.lambda_sil
     assert configs["all", "+depth"].losses.lambda_sil == 0.0
-    sparse = {variant: (cfg.losses.lambda_sil, cfg.losses.lambda_depth)
-              for (regime, variant), cfg in configs.items() if regime == "views=3,lights=3"}
-    assert sparse["+both"] == (0.5, 0.3) and sparse["+silhouette"] == (0.5, 0.0) and sparse["+depth"] == (0.0, 0.3)
-    assert sparse["diamond-no-mv"] == sparse["sss3dgs"] == (0.0, 0.0)  # a sparse short run's own: the terms off
     configs.clear()
     main([*base, "--iterations", "400", "--regimes", "all", "--variants", "+both", "--set", "batch_size=3"])
     assert configs["all", "+both"].schedule.batch_size == 3

@@ -31,7 +31,6 @@ SPARSE_1000 = {  # a sparse capture's densification threshold and loss weights, 
     "densify_grad_threshold": 0.0002, "lambda_dssim": 0.2, "lambda_normal": 0.02, "lambda_base_color": 0.005,
     "lambda_base_color_smooth": 0.006, "lambda_metallic_smooth": 0.002, "lambda_roughness_smooth": 0.002,
     "mv_source_gradient": "centres",  # the multi-view terms move the Gaussian centres only (session 47)
-    "lambda_sil": 0.0, "lambda_depth": 0.0,  # and are off on the real images alone (session 53, issue 58)
 }
 
 
@@ -233,7 +232,7 @@ def test_the_default_preset_trains_with_the_short_run_settings(tmp_path, monkeyp
         assert seen["config"].prelim_preset == "sss3dgs"  # the benchmarks' preliminary reconstruction
         assert "preliminary reconstruction (sss3dgs): the same settings without losses.photometric_error=rmse" in said
         prelim_line = said.split("preliminary reconstruction (sss3dgs):")[1]
-        assert "with a sparse capture's" in prelim_line and "losses.lambda_sil=0.0" in prelim_line  # named, not silent
+        assert "with a sparse capture's" in prelim_line and "losses.lambda_dssim=0.2" in prelim_line  # named, not silent
         main([*base, *flag, "--prelim-preset", "diamond"])
         assert seen["config"].prelim_preset == "diamond"
     main([*base, *flag])
@@ -265,39 +264,7 @@ def test_train_takes_a_dense_captures_settings_by_the_images_its_regime_selects(
         assert seen["trained"] == make_config("diamond", overrides=short_run_overrides(1000, dense=dense))
         assert (seen["trained"].schedule.batch_size, seen["trained"].losses.photometric_error) == (
             (2, "rmse") if dense else (1, "l1"))
-        said = " ".join(capsys.readouterr().out.split())
-        assert f"selects {views * lights} images, dense from 100" in said
-        terms = (seen["trained"].losses.lambda_sil, seen["trained"].losses.lambda_depth)
-        assert terms == ((0.5, 0.3) if dense else (0.0, 0.0))
-        assert ("the multi-view silhouette and depth terms are off" in said) == (not dense)
-
-
-def test_a_sparse_run_on_real_images_says_its_multi_view_terms_are_off_and_set_turns_them_on(tmp_path, monkeypatch,
-                                                                                              capsys):
-    """Issue 58: the terms gain nothing on a sparse capture's real images alone, so the short-run settings turn them
-    off there and say so; --set brings them back (moving the centres only), and a --config file's weights count as
-    named too; the sss3dgs preset, which has none, says nothing of them."""
-    import dataclasses
-
-    import diamond_sss.training.run as training_run
-
-    seen = {}
-    monkeypatch.setattr(training_run, "train_run", lambda data, out, config, **kwargs: seen.update(trained=config) or
-                        dataclasses.make_dataclass("R", ["steps", "seconds", "num_gaussians", "final_loss"])(1, 0, 1, 0))
-    make_capture(tmp_path / "data", views=3, lights=3, size=12)
-    base = ["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "run"), "--quiet"]
-    (tmp_path / "weights.json").write_text(json.dumps({"lambda_depth": 0.0}))
-    for extra, terms, said_off in (([], (0.0, 0.0), True),
-                                   (["--set", "lambda_sil=0.5", "--set", "lambda_depth=0.3"], (0.5, 0.3), False),
-                                   (["--config", str(tmp_path / "weights.json")], (0.0, 0.0), False),
-                                   (["--preset", "sss3dgs", "--short-run"], (0.0, 0.0), False)):
-        main([*base, *extra])
-        said = " ".join(capsys.readouterr().out.split())
-        losses = seen["trained"].losses
-        assert (losses.lambda_sil, losses.lambda_depth) == terms, extra
-        assert seen["trained"].multiview.source_gradient == "centres"
-        assert ("the multi-view silhouette and depth terms are off" in said) == said_off, extra
-        assert ("--set lambda_sil=0.5 --set lambda_depth=0.3 turns them on" in said) == said_off, extra
+        assert f"selects {views * lights} images, dense from 100" in " ".join(capsys.readouterr().out.split())
 
 
 def test_pipeline_iterations_scale_the_schedule_unless_kept(tmp_path, monkeypatch):

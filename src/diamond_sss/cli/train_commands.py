@@ -40,7 +40,7 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
         device: auto | cpu | cuda (runtime.device; default: --config's, else the preset's).
         quiet: no progress bar.
     """
-    from diamond_sss.training.config import AUTO_PRESET, DENSE_MIN_IMAGES, MULTIVIEW_WEIGHTS, Schedule
+    from diamond_sss.training.config import AUTO_PRESET, DENSE_MIN_IMAGES, Schedule
     from diamond_sss.training.overrides import checked_values, config_file_values, make_config, parse_sets
     from diamond_sss.training.run import selected_images, train_run
 
@@ -56,13 +56,6 @@ def train(data: Path, out: Path, split: str = "train", regime: str = "all", pres
         said += (f" ({'a dense' if images >= DENSE_MIN_IMAGES else 'a sparse'} capture's: regime {regime} selects "
                  f"{images} images, dense from {DENSE_MIN_IMAGES})")
     resolved = make_config(preset, overrides={**from_file, **schedule, **flags, **sets})  # before anything is written
-    terms_named = {"losses.lambda_sil", "losses.lambda_depth"} & {*from_file, *sets}
-    if (short and images < DENSE_MIN_IMAGES and preset != "sss3dgs" and not terms_named
-            and resolved.losses.lambda_sil == resolved.losses.lambda_depth == 0):
-        turn_on = " ".join(f"--set {key}={value}" for key, value in MULTIVIEW_WEIGHTS.items())
-        said += ("; the multi-view silhouette and depth terms are off on a sparse capture's real images alone "
-                 "(training.config.SPARSE_MULTIVIEW: +0.02 dB over 8 held-out runs at 9 images, issue 58; the "
-                 f"pipeline's final reconstruction keeps them); {turn_on} turns them on")
     if said:
         console.print(said)
     result = train_run(data, out, resolved, split=split, regime=regime, resume=resume, show_progress=not quiet)

@@ -19,7 +19,7 @@ from diamond_sss.evaluation.evaluate import render_observation
 from diamond_sss.evaluation.figures import save_image_grid, to_display
 from diamond_sss.evaluation.run import evaluate_run
 from diamond_sss.runs.folder import load_scene
-from diamond_sss.training.config import DENSE_MIN_IMAGES, MULTIVIEW_WEIGHTS, Schedule
+from diamond_sss.training.config import DENSE_MIN_IMAGES, Losses, Schedule
 from diamond_sss.training.overrides import checked_values, make_config
 from diamond_sss.training.run import selected_images, train_run
 from diamond_sss.utils.io import atomic_write_json, atomic_write_text
@@ -27,17 +27,19 @@ from diamond_sss.utils.io import atomic_write_json, atomic_write_text
 VARIANTS: dict[str, tuple[str, dict[str, float | bool | str]]] = {
     "sss3dgs": ("sss3dgs", {}),
     "diamond-no-mv": ("diamond", {"lambda_sil": 0.0, "lambda_depth": 0.0}),
-    "+silhouette": ("diamond", {**MULTIVIEW_WEIGHTS, "lambda_depth": 0.0}),
-    "+depth": ("diamond", {**MULTIVIEW_WEIGHTS, "lambda_sil": 0.0}),
-    "+both": ("diamond", MULTIVIEW_WEIGHTS),
-    "+both-all-targets": ("diamond", {**MULTIVIEW_WEIGHTS, "mv_include_unobserved_views": True}),
-    "sss3dgs+silhouette": ("sss3dgs", {"lambda_sil": MULTIVIEW_WEIGHTS["lambda_sil"]}),
-    "sss3dgs+depth": ("sss3dgs", {"lambda_depth": MULTIVIEW_WEIGHTS["lambda_depth"]}),
-    "sss3dgs+both": ("sss3dgs", MULTIVIEW_WEIGHTS),
-    "+both-blend": ("diamond", {**MULTIVIEW_WEIGHTS, "mv_source_gradient": "blend"}),
-    "+both-centres": ("diamond", {**MULTIVIEW_WEIGHTS, "mv_source_gradient": "centres"}),
-    "sss3dgs+both-blend": ("sss3dgs", {**MULTIVIEW_WEIGHTS, "mv_source_gradient": "blend"}),
-    "sss3dgs+both-centres": ("sss3dgs", {**MULTIVIEW_WEIGHTS, "mv_source_gradient": "centres"}),
+    "+silhouette": ("diamond", {"lambda_depth": 0.0}),
+    "+depth": ("diamond", {"lambda_sil": 0.0}),
+    "+both": ("diamond", {}),
+    "+both-all-targets": ("diamond", {"mv_include_unobserved_views": True}),
+    "sss3dgs+silhouette": ("sss3dgs", {"lambda_sil": Losses.lambda_sil}),
+    "sss3dgs+depth": ("sss3dgs", {"lambda_depth": Losses.lambda_depth}),
+    "sss3dgs+both": ("sss3dgs", {"lambda_sil": Losses.lambda_sil, "lambda_depth": Losses.lambda_depth}),
+    "+both-blend": ("diamond", {"mv_source_gradient": "blend"}),
+    "+both-centres": ("diamond", {"mv_source_gradient": "centres"}),
+    "sss3dgs+both-blend": ("sss3dgs", {"lambda_sil": Losses.lambda_sil, "lambda_depth": Losses.lambda_depth,
+                                       "mv_source_gradient": "blend"}),
+    "sss3dgs+both-centres": ("sss3dgs", {"lambda_sil": Losses.lambda_sil, "lambda_depth": Losses.lambda_depth,
+                                         "mv_source_gradient": "centres"}),
 }
 """``+both`` draws its targets among the views with an image (real or generated); ``+both-all-targets`` also among
 the lattice views without one (depth term only), the default before issue 58. ``sss3dgs+...``: the terms at the
@@ -46,8 +48,7 @@ the lattice views without one (depth term only), the default before issue 58. ``
 every variant those settings (``SPARSE_FROM_SSS3DGS``), so there the two families differ only in unused LPIPS weights;
 pass ``--set`` or other overrides to compare the ``diamond`` preset's own. The terms move what the settings say
 through the source views' depth (``multiview.source_gradient``: ``centres`` in a sparse short run,
-``SPARSE_MULTIVIEW``, ``blend`` otherwise); ``...-blend`` and ``...-centres`` set it. A sparse short run turns the
-terms off (``SPARSE_MULTIVIEW``), so every variant with a term names its weight (``MULTIVIEW_WEIGHTS``)."""
+``SPARSE_MULTIVIEW``, ``blend`` otherwise); ``...-blend`` and ``...-centres`` set it."""
 DEFAULT_VARIANTS = ("sss3dgs", "diamond-no-mv", "+silhouette", "+depth", "+both", "+both-all-targets")
 """What `diamond-sss ablate` and benchmarks/ablation.py train unless told: Tab. 2's rows and the SSS-3DGS baseline."""
 REGIMES = ("all", "views=5,lights=6", "views=3,lights=3")

@@ -372,23 +372,20 @@ blob/wax decide; knot/skin, bust/soap report), with these keys 17.93 / 19.81 / 1
 pipeline's final reconstruction (real and generated images): with these keys after render repair +0.15 / +0.67 dB
 on the deciding objects but -0.04 / +0.02 on the others, whose mask IoU fell (0.917 -> 0.905, 0.959 -> 0.942)."""
 
-SPARSE_MULTIVIEW: dict[str, Any] = {"lambda_sil": 0.0, "lambda_depth": 0.0, "mv_source_gradient": "centres"}
-"""A short run over a sparse capture's real images alone (not the pipeline's final reconstruction, which keeps the
-terms: +0.68 dB there, issue 58) trains without the multi-view silhouette and depth terms: there they cannot help.
-Measured on four held-out objects of another rig, 1000 steps, the ``sss3dgs`` weights (issue 58, benchmarks/RESULTS.md,
-sessions 46-47): at 9 images, both terms with the centres-only gradient below against off, mean of 8 runs (2 seeds)
-19.54 against 19.52 dB (target +0.5), depth error .063 / .062 / .061 / .044 against .061 / .060 / .057 / .036
-(knot/jade, blob/wax decide; knot/skin, bust/soap report), mask IoU +.006; at 30 images (2 seeds) 24.25 against 24.21,
-depth error .052 / .054 against .047 / .046; and the step costs 30% more on the CPU. Through the blending weights
-(the paper's gradient) they score 19.64 / 24.44 but deepen the expected depth (error .087 / .127 / .083 / .090 at 9
-images). ``--set lambda_sil=... --set lambda_depth=...`` turns them on (:data:`MULTIVIEW_WEIGHTS`), and then they move
-only the Gaussian centres through the source views' depth (``multiview.source_gradient = centres``): through the
-blending weights the silhouette term lowers the front Gaussians' opacity, which moves the expected depth behind the
-surface (bias +0.03 to +0.13 scene units, radius 1)."""
-
-MULTIVIEW_WEIGHTS: dict[str, float] = {"lambda_sil": Losses.lambda_sil, "lambda_depth": Losses.lambda_depth}
-"""The ``diamond`` preset's multi-view weights (Tab. 3), for the runs that measure the terms where a regime's
-settings turn them off (:data:`SPARSE_MULTIVIEW`): the ablation's variants and ``benchmarks/regimes.py``'s ``+mv``."""
+SPARSE_MULTIVIEW: dict[str, Any] = {"mv_source_gradient": "centres"}
+"""A short run over a sparse capture (not the pipeline's final reconstruction) lets its multi-view terms move only
+the Gaussian centres through the source views' depth (``multiview.source_gradient``). Through the blending weights
+the silhouette term lowers the front Gaussians' opacity, which moves the expected depth behind the surface (bias
++0.03 to +0.13 scene units, radius 1). Measured on held-out objects given as their 9 images, 1000 steps, the
+``sss3dgs`` weights, both terms (issue 58, benchmarks/RESULTS.md, session 47): depth error .087 / .127 / .083 / .090
+-> .063 / .062 / .061 / .044 (terms off: .061 / .060 / .057 / .036); PSNR 17.93 / 19.81 / 18.39 / 22.32 -> 17.98 /
+20.03 / 18.72 / 21.73 (knot/jade, blob/wax decide; knot/skin, bust/soap report; mean 19.61 both), on training seed 1
+17.56 / 19.88 / 18.75 / 22.49 -> 17.98 / 20.06 / 18.30 / 21.54 (the deciding objects gain, bust/soap loses 0.6-0.95;
+mean of the 8 runs 19.64 -> 19.54, terms off 19.52); at 30 images, 2 seeds, mean 24.44 -> 24.25 (off 24.21), depth
+error .070 / .087 -> .052 / .054. Its cost, a second geometry pass over the batch views: 200 steps on the demo's 9
+images (64 px, 8k Gaussians, one CPU thread) 24-26 s -> 33-34 s. The terms stay on there: end to end (session 53, 9
+images, ``train`` with them off against on) they scored +0.06 dB mean on those four objects (-0.37 / +0.10 / 0.00 /
++0.50) but +0.54 / +0.47 (mask IoU +0.02) on the knots of a rig framing the object at half that scale."""
 
 DENSE_MIN_IMAGES = 100
 """A run whose regime selects at least this many training images takes a dense capture's short-run settings
