@@ -2,16 +2,17 @@
 # scripts/gpu_check.py in one call on a lent GPU machine without network (the device tool of environment.md: the
 # checkout and the carried paths travel, 64 MiB in all; what is left in $OUT comes back, at most 8 files).
 # It installs the carried wheels (outputs/wheels/, which scripts/fetch_gpu_wheels.sh fills here), unpacks
-# outputs/priors.tgz when it was carried (scripts/make_prior_data.sh writes it) and then trains the novel-view prior on
+# outputs/priors.tgz when it was carried (scripts/make_prior_data.sh writes it; `scripts/make_prior_rig_data.py --kind
+# novel-view` adds captures on varied rigs, issue 57 item 4, and packs it again) and then trains the novel-view prior on
 # those captures, runs gpu_check.py with the arguments given, and leaves in $OUT: report.md, the fp16 prior
 # (nvs_prior_model/, when trained) and everything else packed into gpu_check.tgz (logs, report.json, speed tables,
 # the prior's train_log.jsonl).
-# The checkout is ~44 MB (the shipped models 16 MB, benchmarks/results/ 15 MB), so all wheels (~18 MB) and the
-# captures (~10 MB) beside it exceed the 64 MiB that travel: a call that trains the prior carries the wheels without
+# The checkout is ~57 MB (session 55; the shipped models 16 MB, benchmarks/results/ 25 MB), so all wheels (~18 MB) and
+# the captures (~10 MB; ~17 MB with the 23 rig captures) beside it exceed the 64 MiB that travel: a call that trains the prior carries the wheels without
 # optuna and its database packages (~13 MB; only the suite and the tuning need them), made here by
 # `LEAN=1 scripts/fetch_gpu_wheels.sh .venv/bin/python outputs/wheels_lean`, and names them in WHEELS; and since
 # session 31 it also needs benchmarks/results/ moved out of the checkout for the call (`mv benchmarks/results
-# /tmp/results_aside` before, back after: no GPU step reads it), which leaves ~52 MB.
+# /tmp/results_aside` before, back after: no GPU step reads it), which leaves ~55 MB (~62 MB with the rig captures).
 # Carry ["outputs/wheels_lean", "outputs/priors.tgz"]:
 #   WHEELS=outputs/wheels_lean OUT=$OUT scripts/gpu_lease.sh --skip build cuda-tests suite speed speed-raster \
 #       nvs-speed train eval --prior-minutes 8 --prior-init src/diamond_sss/assets/models/nvs

@@ -8,7 +8,7 @@
 # blob/wax once more at 256 px (32 spp) with only those 9 training images and the test split.
 # Not committed: written to outputs/heldout/ (<shape>_<material>, <shape>_<material>_sparse9, ..._sparse30,
 # blob_wax_256px_sparse9, far_knot_marble, far_knot_soap, far_bunny_jade, far_bust_skin, near_bunny_marble, near_knot_glazed_wax,
-# mid_knot_wax, mid_bust_glazed_wax, mid_bunny_glazed_wax and their _sparse9). Resumable: a capture whose meta.json exists, or an export folder that exists, is skipped.
+# mid_knot_wax, mid_bust_glazed_wax, mid_bunny_glazed_wax and their _sparse9; relight_<object>: the relighting judges at the end). Resumable: a capture whose meta.json exists, or an export folder that exists, is skipped.
 # Usage: scripts/make_heldout_data.sh [PYTHON]   (about 17 min on 2 CPU cores)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -85,4 +85,25 @@ render_rig() {  # render_rig PREFIX RIG_ARRAY shape:material:seed...: each objec
 render_rig far RIG_FAR knot:marble:25 knot:soap:26 bunny:jade:27 bust:skin:28
 render_rig near RIG_NEAR bunny:marble:29 knot:glazed_wax:30
 render_rig mid RIG_MID knot:wax:31 bust:glazed_wax:32 bunny:glazed_wax:33
+# Relighting judges (issue 57 item 4; benchmarks/relight_quality.py): six of the held-out objects above on their own
+# rigs (the same seed and bands, so the same object; with no test split the cameras and lights interleave otherwise),
+# 2 views under 8 lights each of the complete lattice (no --lights-per-view); no prior training capture
+# (scripts/make_prior_rig_data.py) uses these rigs or pairs.
+relight_judge() {  # relight_judge RIG_ARRAY NAME shape:material:seed: that object's relight:2x8 as relight_<NAME>
+    local -n rig=$1
+    local name=$2 shape material seed kept=() skip=0 arg
+    IFS=: read -r shape material seed <<< "$3"
+    for arg in "${rig[@]}"; do  # the rig without its per-view light subsets
+        if ((skip)); then skip=0; elif [[ $arg == --lights-per-view ]]; then skip=1; else kept+=("$arg"); fi
+    done
+    [[ -f "$OUT/relight_$name/meta.json" ]] || cli synth --shape "$shape" --material "$material" \
+        --out "$OUT/relight_$name" "${kept[@]}" --test-views 0 --test-lights 0 --size 64 --spp 64 --seed "$seed" \
+        --subset relight:2x8
+}
+relight_judge RIG knot_jade knot:jade:21
+relight_judge RIG blob_wax blob:wax:22
+relight_judge RIG_FAR far_knot_marble knot:marble:25
+relight_judge RIG_FAR far_bust_skin bust:skin:28
+relight_judge RIG_NEAR near_bunny_marble bunny:marble:29
+relight_judge RIG_MID mid_bust_glazed_wax bust:glazed_wax:32
 du -sh "$OUT"/*/
