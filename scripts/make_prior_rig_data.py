@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -102,23 +103,36 @@ def main() -> int:
     parser.add_argument("--kind", choices=tuple(SUBSETS), default="relight", help="which prior the captures train")
     parser.add_argument("--python", default=sys.executable, help="interpreter that runs diamond-sss synth")
     args = parser.parse_args()
+    if shutil.which(args.python) is None:
+        parser.error(f"--python: {args.python} is not an executable (the interpreter of the project's .venv)")
     out, prefix = (ROOT / "outputs" / "relight_rigs", "") if args.kind == "relight" else (ROOT / "outputs" / "priors", "rig_")
     out.mkdir(parents=True, exist_ok=True)
-    rigs = {}
+    rigs, finished = {}, 0
     for shape, material, seed in tqdm(captures(args.kind), desc=f"{args.kind} captures", unit="capture"):
         name = f"{prefix}{shape}_{material}_s{seed}"
         rig = sample_rig(seed)
         rigs[name] = rig
         folder = out / name
         if (folder / "meta.json").is_file():  # written last: a finished capture
+            finished += 1
             continue
-        subprocess.run(synth_command(args.python, shape, material, seed, folder, rig, SUBSETS[args.kind]),
-                       check=True, stdout=subprocess.DEVNULL)
+        command = synth_command(args.python, shape, material, seed, folder, rig, SUBSETS[args.kind])
+        try:
+            subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+        except subprocess.CalledProcessError as error:  # synth's own message is on stderr above
+            print(f"make_prior_rig_data: synth stopped with exit {error.returncode} on {folder}; it has no meta.json, "
+                  "so a rerun renders it again and keeps the finished captures", file=sys.stderr)
+            return 1
+    if finished:
+        print(f"{finished} of {len(rigs)} captures were already finished (meta.json present) and were kept as they are")
     rig_file = out.with_name(f"{out.name}_rigs.json")  # beside the captures, so that <out>/* names only captures
     rig_file.write_text(json.dumps(rigs, indent=1))
     if args.kind == "novel-view":  # the form that travels to a lent GPU machine (scripts/gpu_lease.sh)
+        single_rig = [p for p in out.iterdir() if not p.name.startswith(prefix) and (p / "meta.json").is_file()]
         subprocess.run(["tar", "czf", str(out.with_suffix(".tgz")), "-C", str(out.parent), out.name], check=True)
-        print(f"packed {out} into {out.with_suffix('.tgz')} ({out.with_suffix('.tgz').stat().st_size / 2**20:.1f} MiB)")
+        print(f"packed {out} into {out.with_suffix('.tgz')} ({out.with_suffix('.tgz').stat().st_size / 2**20:.1f} MiB): "
+              f"{len(rigs)} rig captures and {len(single_rig)} of scripts/make_prior_data.sh"
+              + ("" if single_rig else " (none rendered yet: run it for the prior's single-rig captures, then this again)"))
     fills = [r["fill"] for r in rigs.values()]
     print(f"{len(rigs)} captures in {out}; object fills {min(fills):.0%}-{max(fills):.0%} of the width, "
           f"light radius {min(r['light_radius'] for r in rigs.values()):.1f}-"

@@ -50,3 +50,12 @@ def test_no_capture_is_a_judge_or_benchmark_object():
         used = {f"{shape}:{material}" for shape, material, _ in rig_data.captures(kind)}
         assert used and not used & judges, (kind, used & judges)
     assert "bunny:soap" in {f"{s}:{m}" for s, m, _ in rig_data.captures("relight")}
+
+
+def test_an_interpreter_that_does_not_exist_stops_before_anything_is_written(monkeypatch, capsys, tmp_path):
+    monkeypatch.setattr(rig_data, "ROOT", tmp_path)
+    monkeypatch.setattr("sys.argv", ["make_prior_rig_data.py", "--python", str(tmp_path / "no_python")])
+    with pytest.raises(SystemExit) as stop:
+        rig_data.main()
+    assert stop.value.code == 2 and "--python" in capsys.readouterr().err
+    assert not (tmp_path / "outputs").exists()
