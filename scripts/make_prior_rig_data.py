@@ -40,7 +40,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 from tqdm import tqdm
+
+from diamond_sss.pipeline.rig import framed_intrinsics
 
 ROOT = Path(__file__).resolve().parents[1]
 NEW_PAIRS = ("blob:skin", "bunny:soap", "sphere:jade", "sphere:wax", "torus:glazed_wax", "torus:wax")
@@ -64,8 +67,9 @@ def captures(kind: str) -> list[tuple[str, str, int]]:
 
 def field_of_view_deg(camera_radius: float, fill: float) -> float:
     """Horizontal field of view (deg) at which a unit sphere at distance ``camera_radius`` spans ``fill`` of the
-    width: ``tan(fov / 2) = tan(asin(1 / r)) / fill``."""
-    return 2.0 * math.degrees(math.atan(math.tan(math.asin(1.0 / camera_radius)) / fill))
+    width, as the pipeline frames cameras (``pipeline.rig.framed_intrinsics``; a 2-px image: ``fov = 2 atan(1 / f)``)."""
+    focal = float(framed_intrinsics(torch.tensor([0.0, 0.0, camera_radius]), 1.0, 2, 2, fill)[0, 0])
+    return 2.0 * math.degrees(math.atan(1.0 / focal))
 
 
 def sample_rig(seed: int) -> dict[str, float | list[float]]:
