@@ -9,6 +9,10 @@ compared with the true camera-space depth ``D*`` and the true mask ``M = D* > 0`
 * ``mask_iou``: ``|M & A| / |M | A|`` with ``A = alpha >= 0.5``;
 * ``leak``: fraction of the rendered silhouette outside ``M`` (boundary bleeding / floaters);
 * ``depth_bias``: mean signed ``D - D*`` (positive: the expected depth lies behind the true surface);
+* ``interior_depth_bias``: the same over the pixels of ``M`` more than ``RIM_PX`` pixels inside its outline (a bias
+  there moves the surface itself, not only the outline's pixels);
+* ``fringe_alpha``: mean rendered alpha over the pixels within ``FRINGE_PX`` outside ``M`` (a soft halo round the
+  object, which costs the background's PSNR);
 * ``median_depth_mae`` / ``median_depth_bias``: the same for the depth where the transmittance crosses 0.5,
   ``D_0.5``: the Gaussians with centre depth below ``t`` are rendered for ``SWEEP`` thresholds ``t`` in
   ``[near, far]`` and ``D_0.5`` is interpolated linearly where their alpha crosses 0.5.
@@ -23,6 +27,7 @@ import json
 from pathlib import Path
 
 import torch
+from scipy import ndimage
 from torch import Tensor
 
 from diamond_sss.data.conventions import world_to_camera
@@ -33,6 +38,8 @@ from diamond_sss.runs.folder import load_scene
 from diamond_sss.scene.model import RelightableScene
 
 SWEEP = 16
+RIM_PX = 2.0
+FRINGE_PX = 1.5
 
 
 def median_depth(scene: RelightableScene, w2c: Tensor, K: Tensor, width: int, height: int, near: float,
@@ -67,6 +74,7 @@ def run_geometry(run: Path, dataset: OLATDataset) -> dict[str, float]:
         raise ValueError(f"{dataset.json_path}: no view has a depth map (render the capture with synth --maps)")
     error_sum, bias_sum, error_count, inter, union, leak, rendered = 0.0, 0.0, 0, 0, 0, 0, 0
     median_sum, median_bias, median_count = 0.0, 0.0, 0
+    interior_bias, interior_count, fringe_sum, fringe_count = 0.0, 0, 0.0, 0
     for view in views:
         camera = dataset.cameras[view]
         true_depth = dataset.load_geometry_maps(view)[0][..., 0]
@@ -77,6 +85,13 @@ def run_geometry(run: Path, dataset: OLATDataset) -> dict[str, float]:
         error_sum += float((depth - true_depth)[both].abs().sum())
         bias_sum += float((depth - true_depth)[both].sum())
         error_count += int(both.sum())
+        inside = torch.from_numpy(ndimage.distance_transform_edt(truth.numpy()) > RIM_PX) & covered
+        interior_bias += float((depth - true_depth)[inside].sum())
+        interior_count += int(inside.sum())
+        outside = ndimage.distance_transform_edt(~truth.numpy())
+        fringe = torch.from_numpy((outside > 0) & (outside <= FRINGE_PX))
+        fringe_sum += float(alpha[fringe].sum())
+        fringe_count += int(fringe.sum())
         surface = median_depth(scene, camera.w2c, camera.K, camera.width, camera.height, bounds.near, bounds.far)
         hit = truth & torch.isfinite(surface)
         median_sum += float((surface - true_depth)[hit].abs().sum())
@@ -88,7 +103,9 @@ def run_geometry(run: Path, dataset: OLATDataset) -> dict[str, float]:
         rendered += int(covered.sum())
     mae = error_sum / max(error_count, 1)
     return {"depth_mae": mae, "depth_mae_rel": mae / (bounds.far - bounds.near),
-            "depth_bias": bias_sum / max(error_count, 1), "median_depth_mae": median_sum / max(median_count, 1),
+            "depth_bias": bias_sum / max(error_count, 1),
+            "interior_depth_bias": interior_bias / max(interior_count, 1),
+            "fringe_alpha": fringe_sum / max(fringe_count, 1), "median_depth_mae": median_sum / max(median_count, 1),
             "median_depth_bias": median_bias / max(median_count, 1), "mask_iou": inter / max(union, 1),
             "leak": leak / max(rendered, 1), "views": len(views)}
 
