@@ -12,7 +12,7 @@ compared with the true camera-space depth ``D*`` and the true mask ``M = D* > 0`
 * ``interior_depth_bias``: the same over the pixels of ``M`` more than ``RIM_PX`` pixels inside its outline (a bias
   there moves the surface itself, not only the outline's pixels);
 * ``fringe_alpha``: mean rendered alpha over the pixels within ``FRINGE_PX`` outside ``M`` (a soft halo round the
-  object, which costs the background's PSNR);
+  object, which costs the background's PSNR); either is NaN, with a line saying why, where it has no pixel;
 * ``median_depth_mae`` / ``median_depth_bias``: the same for the depth where the transmittance crosses 0.5,
   ``D_0.5``: the Gaussians with centre depth below ``t`` are rendered for ``SWEEP`` thresholds ``t`` in
   ``[near, far]`` and ``D_0.5`` is interpolated linearly where their alpha crosses 0.5.
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import torch
@@ -62,6 +63,14 @@ def median_depth(scene: RelightableScene, w2c: Tensor, K: Tensor, width: int, he
     frac = ((0.5 - a0) / (a1 - a0).clamp_min(1e-6)).clamp(0.0, 1.0)
     depth = torch.where(first > 0, t0 + frac * (t1 - t0), t1)
     return torch.where(crossed.any(0), depth, torch.full_like(depth, float("nan")))
+
+
+def _mean_or_nan(total: float, count: int, why_empty: str) -> float:
+    """``total / count``, or NaN with ``why_empty`` on stderr when no pixel was counted."""
+    if count:
+        return total / count
+    print(f"mv_geometry: {why_empty}; reported as NaN", file=sys.stderr)
+    return float("nan")
 
 
 @torch.no_grad()
@@ -104,8 +113,10 @@ def run_geometry(run: Path, dataset: OLATDataset) -> dict[str, float]:
     mae = error_sum / max(error_count, 1)
     return {"depth_mae": mae, "depth_mae_rel": mae / (bounds.far - bounds.near),
             "depth_bias": bias_sum / max(error_count, 1),
-            "interior_depth_bias": interior_bias / max(interior_count, 1),
-            "fringe_alpha": fringe_sum / max(fringe_count, 1), "median_depth_mae": median_sum / max(median_count, 1),
+            "interior_depth_bias": _mean_or_nan(interior_bias, interior_count, f"{run}: no covered pixel lies more than "
+                                                f"{RIM_PX:g} px inside the true outline"),
+            "fringe_alpha": _mean_or_nan(fringe_sum, fringe_count, f"{run}: no pixel lies within {FRINGE_PX:g} px "
+                                         "outside the true outline"), "median_depth_mae": median_sum / max(median_count, 1),
             "median_depth_bias": median_bias / max(median_count, 1), "mask_iou": inter / max(union, 1),
             "leak": leak / max(rendered, 1), "views": len(views)}
 
