@@ -44,7 +44,8 @@ def test_demo_overrides_are_unchanged():
         assert scaled["lr_decay_step"] == 7 * n // 10  # the step decay at 70% of the run
         assert scaled["sss_lr_warmup_steps"] == n // 10  # the MLP's warm-up over the first 10%
     assert short_schedule(1000, dense=True) == {**DEMO_OVERRIDES_1000, "batch_size": 2, "photometric_error": "rmse"}
-    assert short_schedule(1000, pipeline_final=True) == {**DEMO_OVERRIDES_1000, "photometric_error": "rmse"}
+    assert short_schedule(1000, pipeline_final=True) == {**DEMO_OVERRIDES_1000, "photometric_error": "rmse",
+                                                         "lambda_sil": 0.0, "lambda_depth": 0.0, "lambda_mask": 0.5}
 
 
 def test_the_demo_trains_its_baseline_on_l1_and_its_pipelines_final_reconstruction_on_the_rmse(tmp_path, monkeypatch):
@@ -184,6 +185,9 @@ def test_short_run_overrides_are_the_benchmarks_settings_under_the_config_files(
     assert (dense["lr.decay_step"], dense["densify.refine_stop_iter"]) == (2100, 2550)
     final = short_run_overrides(1000, pipeline_final=True)
     assert (final["schedule.batch_size"], final["losses.photometric_error"]) == (1, "rmse")
+    assert (final["losses.lambda_sil"], final["losses.lambda_depth"], final["losses.lambda_mask"]) == (0.0, 0.0, 0.5)
+    sparse = short_run_overrides(1000)  # a sparse train on the real images alone keeps the preset's terms
+    assert not {"losses.lambda_sil", "losses.lambda_depth", "losses.lambda_mask"} & set(sparse)
     assert "schedule.average_last" not in final and final["shading.sss_angular_inputs"]
     best = tmp_path / "best.json"
     best.write_text(json.dumps({"sss_lr": 0.002, "lr": {"decay_factor": 0.5}}))

@@ -16,7 +16,7 @@ def demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime: str
     Runs (each resumable under --out; a run made with other models or settings is moved aside to
     <name>.<hash>): SSS-3DGS (`sss3dgs` preset) on the regime's real images only; the DIAMOND-SSS
     pipeline (the SSS-3DGS run reused as its preliminary reconstruction, the augmentation of --augment with the
-    shipped models, final reconstruction with multi-view losses); with --dense, DIAMOND-SSS on every image as the
+    shipped models, final reconstruction); with --dense, DIAMOND-SSS on every image as the
     dense reference.
     Prints the metrics on novel views under novel lights and writes report.md and comparison.png.
 

@@ -88,7 +88,7 @@ def run_demo(out: Path = Path("outputs/demo"), data: Path | None = None, regime:
              iterations: int = 1000, augment: str = "auto", dense: bool = True, parallel: bool = True,
              show_progress: bool = True) -> DemoResult:
     """SSS-3DGS (``sss3dgs`` preset, real images only), the DIAMOND-SSS pipeline (the SSS-3DGS run reused as its
-    preliminary reconstruction, the shipped models of ``augment``, the final reconstruction with multi-view losses)
+    preliminary reconstruction, the shipped models of ``augment``, the final reconstruction)
     and, with ``dense``, DIAMOND-SSS on every image; all with ``short_schedule(iterations)`` (the pipeline's final
     reconstruction with its own settings, the dense one with its dense budget). With ``parallel`` and two or more
     cores, the dense one trains in a second process while the other two train here (its progress bar here follows

@@ -18,7 +18,8 @@ Stages, each cached and resumable and recorded in ``<out>/pipeline.json``:
 4. ``final``    the reconstruction on real images (photometric weight 1) and generated ones (weight
                 ``synthetic_weight``, times each image's agreement factor with the preliminary reconstruction
                 when ``agreement_power`` > 0, :mod:`~diamond_sss.pipeline.agreement`; geometric losses at full
-                weight; the initial hull carved with the generated views' masks too), with the multi-view losses;
+                weight; the initial hull carved with the generated views' masks too), with the configuration's
+                multi-view losses (none under the short-run settings: ``PIPELINE_FINAL_RUN``);
 5. ``eval``     the test split (novel views under novel lights).
 
 With ``rounds`` > 1 the stages run again, each round's final reconstruction the next round's preliminary one. A
