@@ -407,10 +407,10 @@ It also leaves the multi-view terms out and weighs the mask loss (Eq. A.4) 0.5 i
 dB there is a uniform erosion that moves the whole surface behind the true one (its ``1 - S`` pulls every point in a
 target mask's soft edge inwards), and a 5x mask weight thins the same halo without it. Measured on held-out objects of
 another rig (render repair, 1000 steps, against the terms at the preset's weights; DIAMOND-SSS issue 58,
-benchmarks/RESULTS.md, sessions 56-57): PSNR -0.13 dB mean over 10 runs (9 images: knot/jade, blob/wax decide -0.28 /
+benchmarks/RESULTS.md, sessions 56-57): PSNR -0.13 dB mean over 12 runs (9 images: knot/jade, blob/wax decide -0.28 /
 +0.32; knot/skin +0.17, bust/soap -0.66 and -0.55 on two seeds, a far rig's knot/marble -0.06; 30 images -0.61 /
-+0.44; 9 images as a lattice -0.46 / +0.34), under the seed spread, for an expected-depth error 15-50% lower in all
-10 and a higher mask IoU in 7. The terms at the preset's weights are ``--set lambda_sil=0.5 --set lambda_depth=0.3
++0.44 and on seed 1 -0.66 / +0.48; 9 images as a lattice -0.46 / +0.34), under the seed spread, for an
+expected-depth error 15-50% lower in all 12 and a higher mask IoU in 9. The terms at the preset's weights are ``--set lambda_sil=0.5 --set lambda_depth=0.3
 --set lambda_mask=0.1`` away (``--preset diamond``: the paper's settings whole)."""
 
 DENSE_LONG_RUN_STEPS = 3_000
