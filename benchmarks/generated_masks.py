@@ -25,9 +25,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 from scipy import ndimage
 
-from diamond_sss.data.images import load_rgba
+from diamond_sss.data.conventions import opencv_w2c_to_opengl_c2w
+from diamond_sss.data.dataset import OLATDataset
+from diamond_sss.errors import DataError
 from diamond_sss.synth.materials import get_material
 from diamond_sss.synth.render import OlatRenderer, RenderSettings
 from diamond_sss.synth.shapes import build_shape
@@ -53,53 +56,48 @@ def compare(mask: np.ndarray, coverage: np.ndarray) -> dict[str, float]:
 
 
 class TrueSilhouettes:
-    """The capture's object (``meta.json``) rendered for its coverage from any camera of a transforms file."""
+    """The capture's object (``meta.json``) rendered for its coverage from any pinhole camera."""
 
     def __init__(self, capture: Path):
         meta_path = capture / "meta.json"
         if not meta_path.is_file():
             raise FileNotFoundError(f"{meta_path}: not a synthetic capture (`diamond-sss synth` writes meta.json)")
         meta = json.loads(meta_path.read_text())
-        shape = meta["shape"]
-        self.mesh = build_shape(shape["name"], shape["seed"], shape["mesh_resolution"])
-        self.material = get_material(meta["material"]["name"])
+        try:
+            shape, material = meta["shape"], meta["material"]["name"]
+            self.mesh = build_shape(shape["name"], shape["seed"], shape["mesh_resolution"])
+        except KeyError as missing:
+            raise DataError(f"{meta_path}: no key {missing} (expected shape.name, shape.seed, "
+                            "shape.mesh_resolution and material.name, as `diamond-sss synth` writes)") from None
+        self.material = get_material(material)
         self.renderers: dict[tuple[int, int, float], OlatRenderer] = {}
 
-    def coverage(self, c2w: np.ndarray, width: int, height: int, focal_x: float) -> np.ndarray:
-        """True coverage ``[H,W]`` of a centred pinhole camera (OpenGL camera-to-world ``c2w``)."""
-        key = (width, height, round(focal_x, 4))
+    def coverage(self, w2c: torch.Tensor, K: torch.Tensor, width: int, height: int) -> np.ndarray:
+        """True coverage ``[H,W]`` of a camera (OpenCV ``w2c``, pixel ``K`` with a centred principal point)."""
+        fx, cx, cy = float(K[0, 0]), float(K[0, 2]), float(K[1, 2])
+        if abs(cx - 0.5 * width) > 1e-3 or abs(cy - 0.5 * height) > 1e-3 or abs(float(K[1, 1]) - fx) > 1e-3:
+            raise ValueError(f"the true silhouette needs a centred principal point and square pixels, got K={K.tolist()}")
+        key = (width, height, round(fx, 4))
         if key not in self.renderers:
-            settings = RenderSettings(width=width, height=height, spp=1, fov_x=2.0 * math.atan(0.5 * width / focal_x))
+            settings = RenderSettings(width=width, height=height, spp=1, fov_x=2.0 * math.atan(0.5 * width / fx))
             self.renderers[key] = OlatRenderer(self.mesh, self.material, settings)
+        c2w = opencv_w2c_to_opengl_c2w(w2c.double()).numpy()
         return self.renderers[key].render_geometry(c2w)[0]
 
 
-def frame_camera(transforms: dict, frame: dict) -> tuple[np.ndarray, int, int, float]:
-    """``(c2w, width, height, focal_x)`` of a transforms frame (per-camera intrinsics or the file's angle)."""
-    width, height = int(frame.get("w", transforms["w"])), int(frame.get("h", transforms["h"]))
-    if "fl_x" in frame:
-        if abs(frame.get("cx", 0.5 * width) - 0.5 * width) > 1e-3 or abs(frame.get("cy", 0.5 * height) - 0.5 * height) > 1e-3:
-            raise ValueError(f"frame {frame.get('file_paths', ['?'])[0]}: off-centre principal point not supported")
-        focal = float(frame["fl_x"])
-    else:
-        focal = 0.5 * width / math.tan(0.5 * float(transforms["camera_angle_x"]))
-    return np.asarray(frame["transform_matrix"], dtype=np.float64), width, height, focal
-
-
-def masks_against_truth(transforms_path: Path, truth: TrueSilhouettes) -> dict[str, float]:
-    """Mean measures over every image of a transforms file (masks from ``mask_paths``, else the images' alpha)."""
-    transforms = json.loads(transforms_path.read_text())
+def masks_against_truth(data: Path, truth: TrueSilhouettes) -> dict[str, float]:
+    """Mean measures over every training image of the data folder ``data`` (each view's truth rendered once)."""
+    dataset = OLATDataset(data, "train")
+    coverage: dict[int, np.ndarray] = {}
     rows = []
-    for frame in transforms["frames"]:
-        c2w, width, height, focal = frame_camera(transforms, frame)
-        coverage = truth.coverage(c2w, width, height, focal)
-        masks = frame.get("mask_paths") or [None] * len(frame["file_paths"])
-        for image, mask in zip(frame["file_paths"], masks, strict=True):
-            _, alpha = load_rgba(transforms_path.parent / image,
-                                 transforms_path.parent / mask if mask else None)
-            rows.append(compare(np.asarray(alpha, dtype=np.float64).reshape(height, width), coverage))
+    for index, observation in enumerate(dataset.observations):
+        camera = dataset.cameras[observation.view]
+        if observation.view not in coverage:
+            coverage[observation.view] = truth.coverage(camera.w2c, camera.K, camera.width, camera.height)
+        mask = dataset.load(index).mask[..., 0].double().numpy()
+        rows.append(compare(mask, coverage[observation.view]))
     if not rows:
-        raise ValueError(f"{transforms_path}: no image")
+        raise DataError(f"{dataset.json_path}: no image")
     return {key: float(np.nanmean([row[key] for row in rows])) for key in KEYS} | {"images": len(rows)}
 
 
@@ -113,14 +111,14 @@ def main() -> None:
     truth = TrueSilhouettes(args.capture)
     rows: dict[str, dict[str, float]] = {}
     if args.real is not None:
-        rows["real"] = masks_against_truth(args.real / "transforms_train.json", truth)
+        rows["real"] = masks_against_truth(args.real, truth)
     for pipeline in args.pipelines:
         stages = [("round 1", pipeline / "round1" / "synthetic"), ("final round", pipeline / "synthetic")]
         found = [(name, folder) for name, folder in stages if (folder / "transforms_train.json").is_file()]
         if not found:
             raise FileNotFoundError(f"{pipeline}: no synthetic/transforms_train.json (not a finished pipeline folder)")
         for name, folder in found:
-            rows[f"{pipeline} ({name})"] = masks_against_truth(folder / "transforms_train.json", truth)
+            rows[f"{pipeline} ({name})"] = masks_against_truth(folder, truth)
     lines = ["| masks | images | " + " | ".join(KEYS) + " |", "|---|---|" + "---|" * len(KEYS)]
     lines += [f"| {name} | {row['images']} | " + " | ".join(f"{row[key]:.3f}" for key in KEYS) + " |"
               for name, row in rows.items()]
